@@ -1,0 +1,48 @@
+"""Synthetic bed generator speed: median ms per scene and points per second, per visibility model, one core.
+
+Reference: the paper authors' generator takes about 340 ms per scene (median, K in [5, 45], about
+12.7 k points) on this machine class; the target here is at most 70 ms for the same density.
+Usage: python bench/synth.py [--scenes N] [--models hpr camera katz]
+"""
+
+import argparse
+import os
+import resource
+import time
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+from perception.synthetic.dataset import scene_seeds  # noqa: E402
+from perception.synthetic.scene import SceneConfig, generate_scene  # noqa: E402
+
+PAPER_MS_PER_SCENE = 340.0
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", type=int, default=30)
+    parser.add_argument("--models", nargs="+", default=["hpr", "camera", "katz"])
+    args = parser.parse_args()
+    os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+    seeds = scene_seeds(123, args.scenes)
+    generate_scene(seeds[0])
+    print(f"{'visibility':<10} {'median ms':>10} {'p90 ms':>8} {'median pts':>11} {'pts/s':>10} {'x paper':>8}")
+    for model in args.models:
+        config = SceneConfig(visibility=model)
+        times, points = [], []
+        for seed in seeds:
+            start = time.perf_counter()
+            scene = generate_scene(seed, config)
+            times.append(time.perf_counter() - start)
+            points.append(len(scene.points))
+        median_ms = 1000 * np.median(times)
+        print(f"{model:<10} {median_ms:>10.1f} {1000 * np.percentile(times, 90):>8.1f} {np.median(points):>11.0f} "
+              f"{np.sum(points) / np.sum(times):>10.0f} {PAPER_MS_PER_SCENE / median_ms:>7.1f}x")
+    print(f"peak RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
+
+
+if __name__ == "__main__":
+    main()

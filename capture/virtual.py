@@ -1,0 +1,104 @@
+"""A virtual depth camera: ray casting over any triangle meshes, with a RealSense-like sensor model.
+
+It knows nothing of mushrooms: callers hand it triangles and a pose and get depth back, plus the id
+of the triangle every pixel sees, so they can carry their own labels through the rendering.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+
+from capture.frames import CameraIntrinsics, DepthFrame
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """Active-stereo depth errors. Defaults follow a D405-class camera at bed range."""
+
+    depth_scale: float = 1e-4
+    """Metres per depth unit (the D405 reports 0.1 mm units)."""
+    noise_at_1m: float = 0.006
+    """Standard deviation in metres of depth noise at 1 m; stereo noise grows with range squared."""
+    grazing_deg: float = 78.0
+    """Beyond this incidence angle pixels start to drop out (no stereo match at grazing angles)."""
+    edge_jump: float = 0.012
+    """A depth step above this (metres) between neighbours invalidates the far side (stereo shadow)."""
+    dropout: float = 0.002
+    """Fraction of random pixels lost."""
+    min_depth: float = 0.07
+    max_depth: float = 1.5
+
+
+@dataclass(frozen=True)
+class Render:
+    """Ideal ray-cast result: metric depth along the optical axis (0 = miss) and hit triangles."""
+
+    depth: np.ndarray
+    triangle_ids: np.ndarray
+    cos_incidence: np.ndarray
+
+
+class MeshScene:
+    """Triangle meshes ready for ray casting; build once, render from many poses."""
+
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray) -> None:
+        if len(triangles) == 0:
+            raise ValueError("nothing to render: the mesh has no triangles")
+        self._scene = o3d.t.geometry.RaycastingScene(nthreads=1)
+        self._scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),
+                                  o3d.core.Tensor(np.ascontiguousarray(triangles, np.uint32)))
+        self._ray_cache: dict[CameraIntrinsics, np.ndarray] = {}
+
+    def _camera_rays(self, intrinsics: CameraIntrinsics) -> np.ndarray:
+        """Ray directions in the camera frame with unit z, so the hit distance is the depth."""
+        if intrinsics not in self._ray_cache:
+            u, v = np.meshgrid(np.arange(intrinsics.width), np.arange(intrinsics.height))
+            self._ray_cache[intrinsics] = np.stack(
+                [(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy,
+                 np.ones(u.shape)], -1).reshape(-1, 3)
+        return self._ray_cache[intrinsics]
+
+    def render(self, intrinsics: CameraIntrinsics, T_world_camera: np.ndarray) -> Render:
+        directions = self._camera_rays(intrinsics) @ T_world_camera[:3, :3].T
+        rays = np.empty((len(directions), 6), np.float32)
+        rays[:, :3] = T_world_camera[:3, 3]
+        rays[:, 3:] = directions
+        hit = self._scene.cast_rays(o3d.core.Tensor(rays), nthreads=1)
+        depth = hit["t_hit"].numpy()
+        missed = ~np.isfinite(depth)
+        depth[missed] = 0.0
+        triangle_ids = hit["primitive_ids"].numpy().astype(np.int64)
+        triangle_ids[missed] = -1
+        normals = hit["primitive_normals"].numpy()
+        cos_incidence = np.abs(np.einsum("ij,ij->i", normals, directions)) / np.linalg.norm(directions, axis=1)
+        shape = (intrinsics.height, intrinsics.width)
+        return Render(depth.reshape(shape), triangle_ids.reshape(shape),
+                      cos_incidence.astype(np.float32).reshape(shape))
+
+
+def apply_sensor_model(render: Render, sensor: SensorModel, rng: np.random.Generator) -> np.ndarray:
+    """Measured depth in metres (0 = invalid): range noise, grazing and edge holes, dropout, quantisation."""
+    depth = render.depth.astype(np.float64)
+    valid = (depth >= sensor.min_depth) & (depth <= sensor.max_depth)
+    grazing_cos = np.cos(np.radians(sensor.grazing_deg))
+    keep_probability = np.clip(render.cos_incidence / grazing_cos, 0.0, 1.0) ** 2
+    valid &= rng.random(depth.shape) < keep_probability
+    valid &= rng.random(depth.shape) >= sensor.dropout
+    hits = np.where(depth > 0, depth, np.inf)
+    padded = np.pad(hits, 1, constant_values=np.inf)
+    nearest_neighbour = np.minimum.reduce([padded[1:-1, :-2], padded[1:-1, 2:], padded[:-2, 1:-1], padded[2:, 1:-1]])
+    valid &= ~(depth - nearest_neighbour > sensor.edge_jump)
+    noisy = depth + rng.standard_normal(depth.shape) * sensor.noise_at_1m * depth ** 2
+    quantised = np.round(noisy / sensor.depth_scale) * sensor.depth_scale
+    return np.where(valid, quantised, 0.0).astype(np.float32)
+
+
+def to_depth_frame(depth_m: np.ndarray, intrinsics: CameraIntrinsics, sensor: SensorModel,
+                   T_world_camera: np.ndarray | None = None, timestamp_ns: int = 0,
+                   sensor_id: str = "virtual", turntable_angle: float | None = None) -> DepthFrame:
+    units = np.round(depth_m / sensor.depth_scale)
+    return DepthFrame(np.clip(units, 0, 65535).astype(np.uint16), sensor.depth_scale, intrinsics,
+                      timestamp_ns, sensor_id, None, T_world_camera, turntable_angle)

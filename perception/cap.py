@@ -1,0 +1,138 @@
+"""The cap model, the one definition every part of perception agrees on (DESIGN.md section 4).
+
+A cap is the upper half of an ellipsoid with semi-axes (s, s, s_z), s_z = 2 s / 3, centred at the
+centre of its wide base. ``R`` maps the cap frame to the bed frame, R = R_y(theta_y) R_x(theta_x)
+(times a spin about the cap axis, which changes nothing); the cap axis is u = R[:, 2].
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+
+import numpy as np
+
+CAP_RADIUS_AT_UNIT_SCALE = 0.020
+"""Cap radius in metres of the template at scale s = 1 (a 40 mm cap)."""
+CAP_HEIGHT_RATIO = 2.0 / 3.0
+"""s_z / s of the cap ellipsoid."""
+
+
+def rotation_x(angle: np.ndarray | float) -> np.ndarray:
+    """Rotation matrices about x, shape (..., 3, 3)."""
+    c, s = np.cos(angle), np.sin(angle)
+    zero, one = np.zeros_like(c), np.ones_like(c)
+    return np.stack([one, zero, zero, zero, c, -s, zero, s, c], -1).reshape(np.shape(c) + (3, 3))
+
+
+def rotation_y(angle: np.ndarray | float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    zero, one = np.zeros_like(c), np.ones_like(c)
+    return np.stack([c, zero, s, zero, one, zero, -s, zero, c], -1).reshape(np.shape(c) + (3, 3))
+
+
+def rotation_z(angle: np.ndarray | float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    zero, one = np.zeros_like(c), np.ones_like(c)
+    return np.stack([c, -s, zero, s, c, zero, zero, zero, one], -1).reshape(np.shape(c) + (3, 3))
+
+
+def cap_rotation(theta_x: np.ndarray | float, theta_y: np.ndarray | float,
+                 spin: np.ndarray | float = 0.0) -> np.ndarray:
+    """R = R_y(theta_y) R_x(theta_x) R_z(spin): tilt the cap after spinning it about its own axis."""
+    return rotation_y(theta_y) @ rotation_x(theta_x) @ rotation_z(spin)
+
+
+def axis_to_angles(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(theta_x, theta_y) of R = R_y R_x whose third column is the unit ``axis`` (..., 3)."""
+    axis = np.asarray(axis, dtype=np.float64)
+    theta_x = -np.arcsin(np.clip(axis[..., 1], -1.0, 1.0))
+    theta_y = np.arctan2(axis[..., 0], axis[..., 2])
+    return theta_x, theta_y
+
+
+def rotation_from_axis(axis: np.ndarray) -> np.ndarray:
+    """The spin-free cap rotation R_y R_x whose cap axis is ``axis`` (..., 3)."""
+    theta_x, theta_y = axis_to_angles(axis)
+    return cap_rotation(theta_x, theta_y)
+
+
+def tilt_deg(axis: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
+    """Angle in degrees between a cap axis and the bed normal."""
+    axis = np.asarray(axis, dtype=np.float64)
+    cos = axis @ up / np.linalg.norm(axis, axis=-1)
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+@dataclass(frozen=True)
+class OrientedBox:
+    """Points ``center + rotation @ q`` with ``lo <= q <= hi`` (box frame), all in metres."""
+
+    center: np.ndarray
+    rotation: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+
+    def vertices(self) -> np.ndarray:
+        """The 8 corners in the parent frame, shape (8, 3)."""
+        corner_index = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)])
+        local = np.where(corner_index == 1, self.hi, self.lo)
+        return local @ self.rotation.T + self.center
+
+    @property
+    def volume(self) -> float:
+        return float(np.prod(self.hi - self.lo))
+
+
+def cap_box(center: np.ndarray, rotation: np.ndarray, scales: np.ndarray) -> OrientedBox:
+    """Box of a cap: [-s_x, s_x] x [-s_y, s_y] x [0, s_z] in the cap frame."""
+    scales = np.asarray(scales, dtype=np.float64)
+    return OrientedBox(np.asarray(center, np.float64), np.asarray(rotation, np.float64),
+                       np.array([-scales[0], -scales[1], 0.0]), scales.copy())
+
+
+@dataclass(frozen=True)
+class Mushroom:
+    """One detected (or true) cap in a named frame; ``scales`` = (s, s, s_z) in metres."""
+
+    id: int
+    center: np.ndarray
+    rotation: np.ndarray
+    scales: np.ndarray
+    score: float = 1.0
+    point_indices: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    @property
+    def axis(self) -> np.ndarray:
+        return self.rotation[:, 2]
+
+    @property
+    def radius(self) -> float:
+        return float(self.scales[:2].mean())
+
+    def to_json(self) -> dict:
+        return {
+            "id": int(self.id),
+            "center": [float(v) for v in self.center],
+            "axis": [float(v) for v in self.axis],
+            "rotation": [[float(v) for v in row] for row in self.rotation],
+            "radius": self.radius,
+            "height": float(self.scales[2]),
+            "cap_diameter_mm": 2000.0 * self.radius,
+            "score": float(self.score),
+            "num_points": int(len(self.point_indices)),
+        }
+
+    @staticmethod
+    def from_json(item: dict) -> "Mushroom":
+        radius = float(item["radius"])
+        return Mushroom(int(item["id"]), np.asarray(item["center"], np.float64),
+                        np.asarray(item["rotation"], np.float64),
+                        np.array([radius, radius, float(item["height"])]), float(item["score"]),
+                        np.zeros(int(item.get("num_points", 0)), np.int64))
+
+
+def detections_json(mushrooms: list[Mushroom], frame: str) -> str:
+    """The detection JSON document of DESIGN.md section 3."""
+    return json.dumps({"frame": frame, "units": "m", "mushrooms": [m.to_json() for m in mushrooms]},
+                      indent=1)

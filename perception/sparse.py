@@ -1,0 +1,323 @@
+"""Sparse 3D convolution in plain PyTorch (DESIGN.md section 9).
+
+Voxels are rows of a ``SparseTensor``: features (N, C) and integer coords (N, 4) = (batch, x, y, z)
+at the tensor's own level (stride 2^k holds floor(original / 2^k)). Neighbours are found by packing
+coords into one int64 key, sorting once and calling ``torch.searchsorted``. A kernel map holds, per
+kernel offset, the (input row, output row) pairs it connects; a convolution is, per offset,
+gather -> matmul -> ``index_add_``. Maps are kept in a cache shared by all tensors derived from one
+input, so each is built once per forward pass. Downsampling is Minkowski-style: the output voxels are
+the occupied parent voxels, and the transposed conv runs the same map backwards. Only standard torch
+ops are used, so everything runs on the device of the inputs.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import torch
+from torch import nn
+
+BATCH_BITS, COORD_BITS = 15, 16
+COORD_MARGIN = 8
+"""Room kept inside each coordinate field, so a neighbour's key is the voxel's key plus a constant."""
+COORD_MIN = -(1 << (COORD_BITS - 1)) + COORD_MARGIN
+COORD_MAX = (1 << (COORD_BITS - 1)) - 1 - COORD_MARGIN
+BATCH_MAX = (1 << BATCH_BITS) - 1
+
+KernelMap = list[tuple[torch.Tensor | None, torch.Tensor | None]]
+"""Per kernel offset, (in_idx, out_idx) int64 rows it connects; (None, None) means the identity."""
+
+
+class SparseTensor:
+    """Features on occupied voxels; ``cache`` holds kernel maps shared with tensors derived from it."""
+
+    __slots__ = ("features", "coords", "stride", "cache")
+
+    def __init__(self, features: torch.Tensor, coords: torch.Tensor, stride: int = 1,
+                 cache: dict | None = None):
+        if features.dim() != 2 or coords.shape != (features.shape[0], 4):
+            raise ValueError(f"need features (N, C) and coords (N, 4); got {tuple(features.shape)} "
+                             f"and {tuple(coords.shape)}")
+        if coords.dtype != torch.int64:
+            raise ValueError(f"coords must be int64, got {coords.dtype}")
+        self.features, self.coords, self.stride = features, coords, stride
+        self.cache = {} if cache is None else cache
+
+    def replace_features(self, features: torch.Tensor) -> SparseTensor:
+        """The same voxels (and cache) with new features."""
+        return SparseTensor(features, self.coords, self.stride, self.cache)
+
+    def __repr__(self) -> str:
+        return f"SparseTensor(n={len(self.coords)}, channels={self.features.shape[1]}, stride={self.stride})"
+
+
+def _pack(coords: torch.Tensor) -> torch.Tensor:
+    u = coords[..., 1:] + (1 << (COORD_BITS - 1))
+    return ((coords[..., 0] << (3 * COORD_BITS)) + (u[..., 0] << (2 * COORD_BITS))
+            + (u[..., 1] << COORD_BITS) + u[..., 2])
+
+
+def pack(coords: torch.Tensor) -> torch.Tensor:
+    """One int64 key per (b, x, y, z) row, ordered by batch then x, y, z; ValueError if unpackable."""
+    batch, xyz = coords[:, 0], coords[:, 1:]
+    if len(coords) and not (batch.min() >= 0 and batch.max() <= BATCH_MAX
+                            and xyz.min() >= COORD_MIN and xyz.max() <= COORD_MAX):
+        raise ValueError(f"coords out of the packable range: batch must lie in [0, {BATCH_MAX}] "
+                         f"and x, y, z in [{COORD_MIN}, {COORD_MAX}]; got batch in "
+                         f"[{int(batch.min())}, {int(batch.max())}], x, y, z in "
+                         f"[{int(xyz.min())}, {int(xyz.max())}]")
+    return _pack(coords)
+
+
+def unpack(key: torch.Tensor) -> torch.Tensor:
+    """Inverse of ``pack``: (N,) keys -> (N, 4) coords."""
+    mask, bias = (1 << COORD_BITS) - 1, 1 << (COORD_BITS - 1)
+    xyz = [((key >> s) & mask) - bias for s in (2 * COORD_BITS, COORD_BITS, 0)]
+    return torch.stack([key >> (3 * COORD_BITS), *xyz], 1)
+
+
+def kernel_offsets(kernel_size: int, centred: bool, device: torch.device | None = None) -> torch.Tensor:
+    """(K, 3) offsets, x slowest and z fastest (spconv's weight order); {-r..r}^3 or {0..k-1}^3."""
+    start = -(kernel_size // 2) if centred else 0
+    steps = range(start, start + kernel_size)
+    return torch.tensor(list(itertools.product(steps, steps, steps)), dtype=torch.int64, device=device)
+
+
+def _key_deltas(offsets: torch.Tensor) -> torch.Tensor:
+    """key(c + d) - key(c) for each offset d (exact while every field stays in range: see COORD_MARGIN)."""
+    return _pack(torch.cat([torch.zeros_like(offsets[:, :1]), offsets], 1)) - _pack(offsets.new_zeros(4))
+
+
+def _sorted_keys(x: SparseTensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sorted keys of ``x``'s voxels and the row of each, cached per stride."""
+    entry = x.cache.get(("keys", x.stride))
+    if entry is None:
+        entry = x.cache[("keys", x.stride)] = torch.sort(pack(x.coords))
+    return entry
+
+
+def _lookup(table: SparseTensor, keys: torch.Tensor) -> torch.Tensor:
+    """Row of ``table`` holding each key, or -1 where that voxel is empty."""
+    sorted_keys, rows = _sorted_keys(table)
+    if not len(sorted_keys):
+        return torch.full_like(keys, -1)
+    pos = torch.searchsorted(sorted_keys, keys).clamp_(max=len(sorted_keys) - 1)
+    return torch.where(sorted_keys[pos] == keys, rows[pos], torch.full_like(keys, -1))
+
+
+def _pairs(found: torch.Tensor) -> KernelMap:
+    """(K, M) rows of the input found for output m at offset k -> one (in_idx, out_idx) per offset."""
+    out = []
+    for row in found:
+        out_idx = torch.nonzero(row >= 0).squeeze(1)
+        out.append((row[out_idx], out_idx))
+    return out
+
+
+def submanifold_map(x: SparseTensor, kernel_size: int) -> KernelMap:
+    """Output voxel o gathers input voxel o + d for every offset d of a centred cube.
+
+    Offsets are ordered so that offset K-1-k is -d; its pairs are those of d swapped, so only the
+    first half is searched.
+    """
+    key = ("subm", x.stride, kernel_size)
+    if key not in x.cache:
+        deltas = _key_deltas(kernel_offsets(kernel_size, True, x.coords.device))
+        half = len(deltas) // 2
+        kmap = _pairs(_lookup(x, pack(x.coords)[None] + deltas[:half, None]))
+        x.cache[key] = kmap + [(None, None)] + [(o, i) for i, o in reversed(kmap)]
+    return x.cache[key]
+
+
+def parent_coords(x: SparseTensor) -> torch.Tensor:
+    """The occupied parent voxels unique(floor(coords / 2)) per batch, sorted, cached per stride."""
+    key = ("coords", 2 * x.stride)
+    if key not in x.cache:
+        parents = x.coords.clone()
+        parents[:, 1:] = torch.div(parents[:, 1:], 2, rounding_mode="floor")
+        x.cache[key] = unpack(torch.unique(pack(parents)))
+    return x.cache[key]
+
+
+def downsample_map(fine: SparseTensor, kernel_size: int, coarse: torch.Tensor | None = None) -> KernelMap:
+    """Coarse voxel o gathers fine voxels 2 o + d, d in {0,1}^3 (k=2) or {-1,0,1}^3 (k=3).
+
+    ``coarse`` defaults to the parents of ``fine``; the map is cached on ``fine`` with its size.
+    """
+    if kernel_size not in (2, 3):
+        raise ValueError(f"stride-2 kernels must have size 2 or 3, got {kernel_size}")
+    key = ("down", fine.stride, kernel_size)
+    if key not in fine.cache:
+        coarse = parent_coords(fine) if coarse is None else coarse
+        deltas = _key_deltas(kernel_offsets(kernel_size, kernel_size == 3, coarse.device))
+        doubled = torch.cat([coarse[:, :1], 2 * coarse[:, 1:]], 1)
+        fine.cache[key] = (_pairs(_lookup(fine, pack(doubled)[None] + deltas[:, None])), len(coarse))
+    return fine.cache[key][0]
+
+
+class _SparseConvFunction(torch.autograd.Function):
+    """out[o] += features[i] @ weight[k] for every pair (i, o) of offset k.
+
+    Saves only ``features`` and ``weight``; backward gathers again instead of keeping the per-offset
+    gathered copies, which would cost K times the input's memory.
+    """
+
+    @staticmethod
+    def forward(ctx, features: torch.Tensor, weight: torch.Tensor, kmap: KernelMap, n_out: int):
+        out = features.new_zeros(n_out, weight.shape[2])
+        for k, (i, o) in enumerate(kmap):
+            if i is None:
+                out += features @ weight[k]
+            elif len(i):
+                out.index_add_(0, o, features[i] @ weight[k])
+        ctx.save_for_backward(features, weight)
+        ctx.kmap = kmap
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_out: torch.Tensor):
+        features, weight = ctx.saved_tensors
+        need_f, need_w = ctx.needs_input_grad[:2]
+        grad_f = torch.zeros_like(features) if need_f else None
+        grad_w = torch.zeros_like(weight) if need_w else None
+        for k, (i, o) in enumerate(ctx.kmap):
+            if i is not None and not len(i):
+                continue
+            g = grad_out if o is None else grad_out[o]
+            if need_w:
+                grad_w[k] = (features if i is None else features[i]).T @ g
+            if need_f:
+                if i is None:
+                    grad_f += g @ weight[k].T
+                else:
+                    grad_f.index_add_(0, i, g @ weight[k].T)
+        return grad_f, grad_w, None, None
+
+
+def sparse_conv(features: torch.Tensor, weight: torch.Tensor, kmap: KernelMap, n_out: int) -> torch.Tensor:
+    """Apply ``weight`` (K, C_in, C_out) along kernel map ``kmap``; returns (n_out, C_out)."""
+    return _SparseConvFunction.apply(features, weight, kmap, n_out)
+
+
+def transpose_map(kmap: KernelMap) -> KernelMap:
+    """The same pairs run from output to input (what a transposed conv needs)."""
+    return [(o, i) for i, o in kmap]
+
+
+class _SparseConvBase(nn.Module):
+    """Weight (K, in_ch, out_ch), He-normal with fan_in = K * in_ch; optional bias."""
+
+    def __init__(self, in_ch: int, out_ch: int, kernel_size: int, bias: bool):
+        super().__init__()
+        self.in_ch, self.out_ch, self.kernel_size = in_ch, out_ch, kernel_size
+        volume = kernel_size ** 3
+        self.weight = nn.Parameter(torch.randn(volume, in_ch, out_ch) * math.sqrt(2.0 / (volume * in_ch)))
+        self.bias = nn.Parameter(torch.zeros(out_ch)) if bias else None
+
+    def _finish(self, out: torch.Tensor) -> torch.Tensor:
+        return out if self.bias is None else out + self.bias
+
+    def extra_repr(self) -> str:
+        return f"{self.in_ch}, {self.out_ch}, kernel_size={self.kernel_size}, bias={self.bias is not None}"
+
+
+class SubmanifoldConv3d(_SparseConvBase):
+    """Convolution whose output voxels are its input voxels (odd kernel sizes); He-initialised."""
+
+    def __init__(self, in_ch: int, out_ch: int, kernel_size: int = 3, bias: bool = False):
+        if kernel_size % 2 == 0 or kernel_size < 1:
+            raise ValueError(f"submanifold kernels must have an odd size, got {kernel_size}")
+        super().__init__(in_ch, out_ch, kernel_size, bias)
+
+    def forward(self, x: SparseTensor) -> SparseTensor:
+        if self.kernel_size == 1:
+            return x.replace_features(self._finish(x.features @ self.weight[0]))
+        out = sparse_conv(x.features, self.weight, submanifold_map(x, self.kernel_size), len(x.coords))
+        return x.replace_features(self._finish(out))
+
+
+class SparseConv3d(_SparseConvBase):
+    """Stride-2 convolution onto the occupied parent voxels (Minkowski-style downsampling)."""
+
+    def __init__(self, in_ch: int, out_ch: int, kernel_size: int = 3, stride: int = 2, bias: bool = False):
+        if stride != 2 or kernel_size not in (2, 3):
+            raise ValueError(f"only stride 2 with kernel size 2 or 3 is supported, got "
+                             f"stride {stride}, kernel size {kernel_size}")
+        super().__init__(in_ch, out_ch, kernel_size, bias)
+
+    def forward(self, x: SparseTensor) -> SparseTensor:
+        coarse = parent_coords(x)
+        out = sparse_conv(x.features, self.weight, downsample_map(x, self.kernel_size), len(coarse))
+        return SparseTensor(self._finish(out), coarse, 2 * x.stride, x.cache)
+
+
+class SparseConvTranspose3d(_SparseConvBase):
+    """Stride-2 upsampling onto the voxels of ``target``: the matching ``SparseConv3d`` map, reversed."""
+
+    def __init__(self, in_ch: int, out_ch: int, kernel_size: int = 3, stride: int = 2, bias: bool = False):
+        if stride != 2 or kernel_size not in (2, 3):
+            raise ValueError(f"only stride 2 with kernel size 2 or 3 is supported, got "
+                             f"stride {stride}, kernel size {kernel_size}")
+        super().__init__(in_ch, out_ch, kernel_size, bias)
+
+    def forward(self, x: SparseTensor, target: SparseTensor) -> SparseTensor:
+        if x.stride != 2 * target.stride:
+            raise ValueError(f"target stride must be half the input's: {target.stride} vs {x.stride}")
+        fine = target if x.cache is target.cache else SparseTensor(target.features, target.coords, target.stride)
+        kmap = downsample_map(fine, self.kernel_size, x.coords)
+        if fine.cache[("down", fine.stride, self.kernel_size)][1] != len(x.coords):
+            raise ValueError("x is not the downsampling of target: its voxel count differs from the map's")
+        out = sparse_conv(x.features, self.weight, transpose_map(kmap), len(target.coords))
+        return target.replace_features(self._finish(out))
+
+
+class SparseBatchNorm(nn.BatchNorm1d):
+    """BatchNorm1d over all voxels of the batch."""
+
+    def forward(self, x: SparseTensor) -> SparseTensor:
+        return x.replace_features(super().forward(x.features))
+
+
+class SparseReLU(nn.ReLU):
+    """ReLU on the features."""
+
+    def forward(self, x: SparseTensor) -> SparseTensor:
+        return x.replace_features(super().forward(x.features))
+
+
+def sparse_cat(a: SparseTensor, b: SparseTensor) -> SparseTensor:
+    """Concatenate the channels of two tensors on the same voxels (U-Net skip connections)."""
+    if a.stride != b.stride or not (a.coords is b.coords or torch.equal(a.coords, b.coords)):
+        raise ValueError(f"sparse_cat needs the same voxels: {a} vs {b}")
+    return a.replace_features(torch.cat([a.features, b.features], 1))
+
+
+def voxelize(points: torch.Tensor | np.ndarray, voxel_size: float,
+             batch_index: torch.Tensor | np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Occupied voxels of ``points`` (N, 3): coords (V, 4) sorted, and point_to_voxel (N,).
+
+    ``coords[point_to_voxel[n]]`` is the voxel of point n, so per-point labels and features can be
+    moved to voxels (``voxel_average``) and predictions back to points.
+    """
+    points = torch.as_tensor(points)
+    if points.dim() != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must be (N, 3), got {tuple(points.shape)}")
+    if voxel_size <= 0:
+        raise ValueError(f"voxel_size must be positive, got {voxel_size}")
+    grid = torch.floor(points.double() / voxel_size).long()
+    batch = (torch.zeros(len(points), dtype=torch.int64, device=points.device) if batch_index is None
+             else torch.as_tensor(batch_index, device=points.device).long())
+    keys = pack(torch.cat([batch[:, None], grid], 1))
+    unique_keys, point_to_voxel = torch.unique(keys, return_inverse=True)
+    return unpack(unique_keys), point_to_voxel
+
+
+def voxel_average(point_features: torch.Tensor, point_to_voxel: torch.Tensor, num_voxels: int) -> torch.Tensor:
+    """Mean of the features (N, C) of the points in each voxel -> (num_voxels, C)."""
+    total = point_features.new_zeros(num_voxels, point_features.shape[1])
+    total.index_add_(0, point_to_voxel, point_features)
+    counts = torch.bincount(point_to_voxel, minlength=num_voxels).clamp_(min=1)
+    return total / counts.to(total.dtype)[:, None]

@@ -1,0 +1,108 @@
+"""Named, cached sets of synthetic beds (val50, test50) and writing scenes to disk."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+from tqdm import tqdm
+
+from perception.synthetic.scene import GENERATOR_VERSION, SceneConfig, SyntheticScene, generate_scene
+
+
+@dataclass(frozen=True)
+class Preset:
+    seed: int
+    scenes: int
+    config: SceneConfig = SceneConfig()
+
+
+PRESETS = {
+    "val50": Preset(seed=2023_0617, scenes=50),
+    "test50": Preset(seed=2023_1001, scenes=50),
+}
+
+
+def scene_seeds(base_seed: int, count: int) -> list[int]:
+    """Independent per-scene seeds derived from one base seed."""
+    return [int(s) for s in np.random.SeedSequence(base_seed).generate_state(count, dtype=np.uint32)]
+
+
+def cache_root() -> Path:
+    return Path(os.environ.get("MUSHROOM_POSE_CACHE", Path.home() / ".cache" / "mushroom-pose"))
+
+
+def preset_dir(name: str, visibility: str = "hpr") -> Path:
+    return cache_root() / "synthetic" / f"{name}-{visibility}-v{GENERATOR_VERSION}"
+
+
+def scene_path(out_dir: Path, index: int) -> Path:
+    return Path(out_dir) / f"scene_{index:04d}.npz"
+
+
+def label_colors(scene: SyntheticScene) -> np.ndarray:
+    """RGB in [0, 1]: caps white, stems grey, soil and distractors brown."""
+    colors = np.tile([0.45, 0.33, 0.22], (len(scene.points), 1))
+    colors[scene.instance >= 0] = [0.65, 0.65, 0.62]
+    colors[scene.is_cap] = [0.97, 0.96, 0.92]
+    return colors
+
+
+def write_ply(scene: SyntheticScene, path: Path) -> None:
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scene.points.astype(np.float64)))
+    cloud.colors = o3d.utility.Vector3dVector(label_colors(scene))
+    tmp = path.with_suffix(".tmp.ply")
+    if not o3d.io.write_point_cloud(str(tmp), cloud, compressed=False):
+        raise OSError(f"could not write {path}")
+    tmp.replace(path)
+
+
+def write_scene(scene: SyntheticScene, out_dir: Path, index: int, ply: bool = True) -> Path:
+    """Write ``scene_NNNN.npz`` (and ``.ply``) atomically: a crash never leaves half a file."""
+    path = scene_path(out_dir, index)
+    tmp = path.with_name(path.stem + ".tmp.npz")
+    scene.save(tmp)
+    tmp.replace(path)
+    if ply:
+        write_ply(scene, path.with_suffix(".ply"))
+    return path
+
+
+def generate_many(seeds: list[int], config: SceneConfig, progress: bool = True,
+                  description: str = "scenes") -> Iterator[SyntheticScene]:
+    for seed in tqdm(seeds, desc=description, unit="scene", disable=not progress, leave=False):
+        yield generate_scene(seed, config)
+
+
+def load_preset(name: str, visibility: str = "hpr", progress: bool = True) -> list[SyntheticScene]:
+    """The scenes of a named preset, generated once and cached on disk (never committed)."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
+    preset = PRESETS[name]
+    directory = preset_dir(name, visibility)
+    seeds = scene_seeds(preset.seed, preset.scenes)
+    scenes = []
+    config = SceneConfig(**{**preset.config.__dict__, "visibility": visibility})
+    missing = [i for i in range(preset.scenes) if not scene_path(directory, i).exists()]
+    if missing:
+        directory.mkdir(parents=True, exist_ok=True)
+        for index, scene in zip(missing, generate_many([seeds[i] for i in missing], config, progress,
+                                                       f"making {name}")):
+            write_scene(scene, directory, index, ply=False)
+    for index in range(preset.scenes):
+        scenes.append(SyntheticScene.load(scene_path(directory, index)))
+    return scenes
+
+
+def log_scene(rec, scene: SyntheticScene, entity: str = "world/synthetic") -> None:
+    """A scene in Rerun: points coloured by label, the true caps as boxes and ellipsoids."""
+    from perception.rerun_log import log_caps, log_points
+
+    log_points(rec, f"{entity}/points", scene.points, colors=label_colors(scene))
+    log_caps(rec, f"{entity}/mushrooms", scene.centers, scene.rotations, scene.scales,
+             labels=[f"{2000 * r:.0f} mm" for r in scene.radii])

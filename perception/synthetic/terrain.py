@@ -1,0 +1,167 @@
+"""Casing soil and distractors: the background every synthetic bed stands on.
+
+Real casing soil is clumpy: clods a few centimetres across, cracks between them, crumbs on top,
+and the whole bed undulating by a few centimetres. Two procedural terrains give that texture
+differently (Voronoi clods, billowed crumbs); both are then deformed locally along their normals,
+as in the paper's Sec. 2.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from perception.cap import cap_rotation
+
+TERRAINS = ("clods", "crumbs")
+
+
+@dataclass(frozen=True)
+class Heightfield:
+    """z = height[i, j] over the regular grid x = xs[j], y = ys[i] (metres, bed frame)."""
+
+    xs: np.ndarray
+    ys: np.ndarray
+    height: np.ndarray
+
+    def sample(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Bilinear height at arbitrary (x, y) inside the grid."""
+        step = self.xs[1] - self.xs[0]
+        fx = np.clip((np.asarray(x) - self.xs[0]) / step, 0, len(self.xs) - 1.000001)
+        fy = np.clip((np.asarray(y) - self.ys[0]) / step, 0, len(self.ys) - 1.000001)
+        j, i = fx.astype(int), fy.astype(int)
+        tx, ty = fx - j, fy - i
+        h = self.height
+        return ((1 - ty) * ((1 - tx) * h[i, j] + tx * h[i, j + 1])
+                + ty * ((1 - tx) * h[i + 1, j] + tx * h[i + 1, j + 1]))
+
+
+def _smooth_noise(rng: np.random.Generator, shape: tuple[int, int], sigma_cells: float) -> np.ndarray:
+    """Unit-variance Gaussian-filtered noise; wide filters run on a coarse grid and are upsampled."""
+    coarsen = max(1.0, sigma_cells / 2.0)
+    coarse_shape = tuple(int(np.ceil(n / coarsen)) + 2 for n in shape)
+    field = ndimage.gaussian_filter(rng.standard_normal(coarse_shape), sigma_cells / coarsen, mode="wrap")
+    if coarsen > 1.0:
+        field = ndimage.zoom(field, (shape[0] / coarse_shape[0], shape[1] / coarse_shape[1]), order=1)
+    field = field[: shape[0], : shape[1]]
+    return field / (field.std() + 1e-12)
+
+
+def soil_heightfield(rng: np.random.Generator, size: float, cell: float, kind: str) -> Heightfield:
+    """A size x size patch of casing soil centred on the origin, mean height 0."""
+    n = int(round(size / cell)) + 1
+    xs = np.linspace(-size / 2, size / 2, n)
+    shape = (n, n)
+    if kind == "clods":
+        seeds = rng.uniform(-size / 2, size / 2, (int(rng.integers(150, 350)), 2))
+        clod_height = rng.uniform(0.004, 0.014, len(seeds))
+        gx, gy = np.meshgrid(xs, xs)
+        dist, nearest = cKDTree(seeds).query(np.stack([gx.ravel(), gy.ravel()], 1), k=2)
+        crack = np.clip((dist[:, 1] - dist[:, 0]) / (rng.uniform(0.004, 0.008)), 0, 1).reshape(shape)
+        height = clod_height[nearest[:, 0]].reshape(shape) * np.sqrt(crack)
+        height = ndimage.gaussian_filter(height, 0.6)
+        height += 0.0012 * _smooth_noise(rng, shape, 1.0)
+    elif kind == "crumbs":
+        height = np.zeros(shape)
+        for sigma_m, amplitude in ((0.012, 0.006), (0.005, 0.003), (0.0025, 0.0012)):
+            height += amplitude * np.abs(_smooth_noise(rng, shape, sigma_m / cell))
+    else:
+        raise ValueError(f"unknown terrain {kind!r}; choose one of {TERRAINS}")
+    height += rng.uniform(0.004, 0.015) * _smooth_noise(rng, shape, 0.12 / cell)
+    return Heightfield(xs, xs.copy(), height - height.mean())
+
+
+def heightfield_mesh(field: Heightfield) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (V, 3) and upward-facing triangles (T, 3) of a heightfield."""
+    n_y, n_x = field.height.shape
+    gx, gy = np.meshgrid(field.xs, field.ys)
+    vertices = np.stack([gx.ravel(), gy.ravel(), field.height.ravel()], 1)
+    i, j = np.meshgrid(np.arange(n_y - 1), np.arange(n_x - 1), indexing="ij")
+    a = (i * n_x + j).ravel()
+    b, c, d = a + 1, a + n_x, a + n_x + 1
+    triangles = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    return vertices, triangles
+
+
+def deform_along_normals(rng: np.random.Generator, vertices: np.ndarray, normals: np.ndarray,
+                         count: int, magnitude: float, radius: tuple[float, float]) -> np.ndarray:
+    """Push ``count`` random vertices along their normals and drag neighbours with a Gaussian falloff.
+
+    ``vertices`` and ``normals`` may carry leading batch dimensions (..., V, 3): each batch item is
+    deformed independently, all at once.
+    """
+    batch, n_vertices = vertices.shape[:-2], vertices.shape[-2]
+    picks = rng.integers(0, n_vertices, batch + (count,))
+    centres = np.take_along_axis(vertices, picks[..., None], axis=-2)
+    push = rng.normal(0.0, magnitude, batch + (count,))
+    width = rng.uniform(*radius, batch + (count,))
+    d2 = np.sum((vertices[..., :, None, :] - centres[..., None, :, :]) ** 2, -1)
+    offset = np.sum(push[..., None, :] * np.exp(-d2 / (2 * width[..., None, :] ** 2)), -1)
+    return vertices + offset[..., None] * normals
+
+
+def heightfield_normals(field: Heightfield) -> np.ndarray:
+    step = field.xs[1] - field.xs[0]
+    dz_dy, dz_dx = np.gradient(field.height, step)
+    normals = np.stack([-dz_dx, -dz_dy, np.ones_like(dz_dx)], -1).reshape(-1, 3)
+    return normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+
+def deform_heightfield_mesh(rng: np.random.Generator, field: Heightfield, vertices: np.ndarray, count: int,
+                            magnitude: float, radius: tuple[float, float]) -> np.ndarray:
+    """``deform_along_normals`` for a heightfield mesh, each bump computed only in its 3-sigma window."""
+    step = field.xs[1] - field.xs[0]
+    n_y, n_x = field.height.shape
+    offset = np.zeros((n_y, n_x))
+    for _ in range(count):
+        i, j = int(rng.integers(n_y)), int(rng.integers(n_x))
+        push, width = rng.normal(0.0, magnitude), rng.uniform(*radius)
+        reach = int(np.ceil(3 * width / step))
+        rows, cols = slice(max(i - reach, 0), i + reach + 1), slice(max(j - reach, 0), j + reach + 1)
+        dy = (np.arange(rows.start, min(rows.stop, n_y)) - i)[:, None] * step
+        dx = (np.arange(cols.start, min(cols.stop, n_x)) - j)[None, :] * step
+        offset[rows, cols] += push * np.exp(-(dx**2 + dy**2) / (2 * width**2))
+    return vertices + offset.reshape(-1, 1) * heightfield_normals(field)
+
+
+_CUBE_VERTICES = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float) / 2
+_CUBE_TRIANGLES = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                            [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+
+
+def _cone(segments: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    angle = np.linspace(0, 2 * np.pi, segments, endpoint=False)
+    rim = np.stack([0.5 * np.cos(angle), 0.5 * np.sin(angle), np.full(segments, -0.5)], 1)
+    vertices = np.concatenate([rim, [[0, 0, 0.5], [0, 0, -0.5]]])
+    k = np.arange(segments)
+    side = np.stack([k, (k + 1) % segments, np.full(segments, segments)], 1)
+    base = np.stack([(k + 1) % segments, k, np.full(segments, segments + 1)], 1)
+    return vertices, np.concatenate([side, base])
+
+
+_CONE_VERTICES, _CONE_TRIANGLES = _cone()
+
+
+@dataclass(frozen=True)
+class Distractor:
+    vertices: np.ndarray
+    triangles: np.ndarray
+    center: np.ndarray
+    radius: float
+    """Bounding-sphere radius, used to keep mushrooms out of it."""
+
+
+def random_distractor(rng: np.random.Generator, field: Heightfield, margin: float) -> Distractor:
+    """A cube or cone of random size and pose, half sunk into the soil."""
+    vertices, triangles = ((_CUBE_VERTICES, _CUBE_TRIANGLES) if rng.random() < 0.5
+                           else (_CONE_VERTICES, _CONE_TRIANGLES))
+    scale = rng.uniform(0.008, 0.035, 3)
+    rotation = cap_rotation(*rng.uniform(-np.pi, np.pi, 3))
+    half = field.xs[-1] - margin
+    x, y = rng.uniform(-half, half, 2)
+    center = np.array([x, y, float(field.sample(x, y)) + rng.uniform(-0.3, 0.3) * scale.min()])
+    placed = (vertices * scale) @ rotation.T + center
+    return Distractor(placed, triangles, center, float(np.linalg.norm(scale) / 2))

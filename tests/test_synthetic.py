@@ -1,0 +1,157 @@
+"""Synthetic beds: the template matches the cap model, scenes are deterministic and their ground truth agrees."""
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from perception.cap import CAP_HEIGHT_RATIO, CAP_RADIUS_AT_UNIT_SCALE, tilt_deg
+from perception.encoding import encode
+from perception.synthetic.dataset import PRESETS, load_preset, scene_seeds
+from perception.synthetic.scene import (SceneConfig, SyntheticScene, _sample_surface, build_bed, generate_scene,
+                                        visible_from)
+from perception.synthetic.template import mushroom_template
+
+
+def test_template_dome_is_the_cap_ellipsoid_of_a_40mm_cap():
+    template = mushroom_template()
+    v = template.vertices
+    dome = v[v[:, 2] >= 0]
+    radial = np.hypot(dome[:, 0], dome[:, 1])
+    ellipsoid = (radial / 0.020) ** 2 + (dome[:, 2] / (0.020 * 2 / 3)) ** 2
+    np.testing.assert_allclose(ellipsoid, 1.0, atol=1e-9)
+    assert np.isclose(2 * radial.max(), 0.040)
+    assert np.isclose(dome[:, 2].max(), 0.040 / 3)
+    assert CAP_RADIUS_AT_UNIT_SCALE == 0.020 and np.isclose(CAP_HEIGHT_RATIO, 2 / 3)
+    cap_vertices = np.unique(template.triangles[template.is_cap])
+    stem_only = np.setdiff1d(np.unique(template.triangles[~template.is_cap]), cap_vertices)
+    assert v[stem_only, 2].max() < 0 and v[cap_vertices, 2].max() > 0
+
+
+def test_template_is_closed_and_outward():
+    template = mushroom_template()
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(template.vertices),
+                                     o3d.utility.Vector3iVector(template.triangles))
+    mesh.merge_close_vertices(1e-9)
+    mesh.remove_degenerate_triangles()
+    assert mesh.is_watertight()
+    assert mesh.get_volume() > 0
+
+
+def test_same_seed_same_scene_and_different_seed_differs():
+    a, b, c = generate_scene(7), generate_scene(7), generate_scene(8)
+    for name in ("points", "instance", "centers", "rotations", "scales", "existence", "residual"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    assert len(a.points) != len(c.points) or not np.array_equal(a.points, c.points)
+
+
+def test_scene_ground_truth_is_consistent():
+    config = SceneConfig(mushrooms=(20, 30))
+    for seed in range(3):
+        scene = generate_scene(seed, config)
+        k = len(scene.centers)
+        assert 20 <= k <= 30
+        assert np.all(scene.instance[scene.is_cap] >= 0) and scene.instance.max() < k
+        axes = scene.scales / np.array([1, 1, CAP_HEIGHT_RATIO]) / CAP_RADIUS_AT_UNIT_SCALE
+        assert np.all(axes >= 0.5 * 0.8 - 1e-9) and np.all(axes <= 1.5 * 1.2 + 1e-9)
+        # tilts about x and y of at most 45 degrees each give an axis at most acos(cos^2 45) = 60 degrees off
+        assert np.all(tilt_deg(scene.rotations[:, :, 2]) <= 60.0 + 1e-6)
+        np.testing.assert_allclose(scene.rotations @ scene.rotations.transpose(0, 2, 1), np.eye(3)[None] * np.ones((k, 1, 1)),
+                                   atol=1e-9)
+        assert np.all(np.abs(scene.points[:, :2]) <= 0.25 + 1e-6)
+        np.testing.assert_array_equal(np.bincount(scene.instance[scene.is_cap], minlength=k), scene.visible_cap_points)
+
+
+def test_cap_points_lie_on_their_cap_ellipsoid():
+    scene = generate_scene(3)
+    cap = (scene.existence > 0) & (scene.orientation > 0.05)
+    owner = scene.instance[cap]
+    local = np.einsum("nd,nde->ne", scene.points[cap] - scene.centers[owner], scene.rotations[owner])
+    radius = np.sqrt(np.sum((local / scene.scales[owner]) ** 2, axis=1))
+    # local deformations move the surface by about half a millimetre
+    assert np.median(np.abs(radius - 1.0)) < 0.05
+
+
+def test_no_two_mushrooms_interpenetrate():
+    rng = np.random.default_rng(11)
+    bed = build_bed(rng, SceneConfig(mushrooms=(45, 45), cluster_probability=0.8))
+    template = mushroom_template()
+    axes = bed.scales / np.array([1, 1, CAP_HEIGHT_RATIO]) / CAP_RADIUS_AT_UNIT_SCALE
+    caps = template.vertices[np.unique(template.triangles[template.is_cap])]
+    caps = caps[caps[:, 2] > 0]
+    world = np.einsum("vd,ked->kve", caps * 0.98, bed.rotations * axes[:, None, :]) + bed.centers[:, None]
+    for i in range(len(bed.centers)):
+        local = np.einsum("kvd,de->kve", world - bed.centers[i], bed.rotations[i]) / bed.scales[i]
+        depth = 1.0 - np.sum(local**2, axis=-1)
+        inside = (depth > 0.05) & (local[..., 2] > 0)
+        inside[i] = False
+        assert not inside.any(), f"mushroom {i} is entered by another cap"
+
+
+def test_zbuffer_visibility_agrees_with_exact_ray_casting():
+    rng = np.random.default_rng(5)
+    config = SceneConfig()
+    bed = build_bed(rng, config)
+    points, _, normals = _sample_surface(rng, bed, 3 / config.voxel**2)
+    eye, target = np.array([0.03, -0.05, 0.55]), np.zeros(3)
+    visible = visible_from(points, normals, eye, target, pixel=0.7 * config.voxel)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(bed.vertices.astype(np.float32)),
+                        o3d.core.Tensor(bed.triangles.astype(np.uint32)))
+    direction = points - eye
+    distance = np.linalg.norm(direction, axis=1)
+    rays = np.hstack([np.broadcast_to(eye, points.shape), direction / distance[:, None]]).astype(np.float32)
+    hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+    exact = hit >= distance - 0.002
+    agreement = np.mean(visible == exact)
+    assert agreement > 0.93, agreement
+    assert 0.3 < visible.mean() < 0.8
+
+
+@pytest.mark.parametrize("visibility", ["camera", "katz"])
+def test_other_visibility_models_give_labelled_clouds(visibility):
+    scene = generate_scene(4, SceneConfig(visibility=visibility, mushrooms=(10, 10)))
+    assert scene.visibility == visibility
+    assert len(scene.points) > 3000
+    assert scene.is_cap.sum() > 100
+    assert (scene.visible_cap_points > 0).sum() >= 8
+
+
+def test_encoding_follows_the_definitions():
+    centers = np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0]])
+    rotations = np.stack([np.eye(3), np.eye(3)])
+    scales = np.array([[0.02, 0.02, 0.02 * 2 / 3]] * 2)
+    points = np.array([[0.0, 0.0, 0.02 * 2 / 3],   # top of cap 0: orientation 1
+                       [0.01, 0.0, 0.0],            # base of cap 0: orientation 0, d1/d2 = 0.01/0.04
+                       [0.025, 0.0, 0.003],         # between the caps: d1 ~= d2, touching rule
+                       [0.3, 0.3, 0.0]])            # soil
+    instance = np.array([0, 0, 0, -1])
+    is_cap = np.array([True, True, True, False])
+    targets = encode(points, instance, is_cap, centers, rotations, scales)
+    np.testing.assert_array_equal(targets.existence, [1, 1, 0, 0])
+    np.testing.assert_allclose(targets.orientation, [1, 0, 0, 0], atol=1e-7)
+    np.testing.assert_allclose(targets.residual[0], [0, 0, -0.02 * 2 / 3], atol=1e-7)
+    np.testing.assert_allclose(targets.residual[1], [-0.01, 0, 0], atol=1e-7)
+    np.testing.assert_array_equal(targets.residual[2:], 0)
+
+
+def test_scene_round_trips_through_npz(tmp_path):
+    scene = generate_scene(2)
+    scene.save(tmp_path / "s.npz")
+    loaded = SyntheticScene.load(tmp_path / "s.npz")
+    for name in ("points", "instance", "centers", "scales", "orientation"):
+        np.testing.assert_array_equal(getattr(scene, name), getattr(loaded, name))
+    assert loaded.seed == scene.seed and loaded.terrain == scene.terrain
+
+
+def test_presets_have_fixed_distinct_seeds_and_are_cached(tmp_path, monkeypatch):
+    assert scene_seeds(PRESETS["val50"].seed, 50) == scene_seeds(PRESETS["val50"].seed, 50)
+    assert not set(scene_seeds(PRESETS["val50"].seed, 50)) & set(scene_seeds(PRESETS["test50"].seed, 50))
+    monkeypatch.setenv("MUSHROOM_POSE_CACHE", str(tmp_path))
+    monkeypatch.setitem(PRESETS, "tiny", PRESETS["val50"].__class__(seed=3, scenes=3))
+    first = load_preset("tiny", progress=False)
+    files = sorted(tmp_path.rglob("*.npz"))
+    assert len(files) == 3
+    stamp = [f.stat().st_mtime_ns for f in files]
+    second = load_preset("tiny", progress=False)
+    assert [f.stat().st_mtime_ns for f in files] == stamp
+    np.testing.assert_array_equal(first[1].points, second[1].points)
