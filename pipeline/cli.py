@@ -103,6 +103,144 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
+def cmd_train(args: argparse.Namespace) -> int:
+    from perception.model import PRESETS as NETWORK_PRESETS
+    from perception.train import TrainConfig, train
+
+    if args.network not in NETWORK_PRESETS:
+        raise CliError(f"unknown network {args.network!r}; choose one of {sorted(NETWORK_PRESETS)}")
+    run_dir = _writable_dir(args.out)
+    if (run_dir / "checkpoint.pt").exists() and not args.resume:
+        raise CliError(f"{run_dir} already holds a checkpoint: add --resume to continue it, or pick a new --out")
+    config = TrainConfig(iterations=args.iterations, lr=args.lr, network=args.network, seed=args.seed,
+                         checkpoint_every=args.checkpoint_every, validate_every=args.validate_every,
+                         validation_scenes=args.validation_scenes)
+    torch_threads(args.threads)
+    try:
+        weights = train(config, run_dir, resume=args.resume, device=args.device, progress=not args.quiet)
+    except ValueError as error:
+        raise CliError(str(error)) from None
+    print(f"weights: {weights}")
+    return 0
+
+
+def torch_threads(threads: int | None) -> None:
+    import torch
+
+    if threads:
+        torch.set_num_threads(threads)
+
+
+def _load_model(path: str | None):
+    from perception.detect import DEFAULT_WEIGHTS
+    from perception.train import load_weights
+
+    weights = Path(path) if path else DEFAULT_WEIGHTS
+    if not weights.exists():
+        if path:
+            raise CliError(f"model file {weights} does not exist")
+        raise CliError(f"no shipped model at {weights}: train one (mushroom-pose train) and pass --model")
+    try:
+        return load_weights(weights)
+    except ValueError as error:
+        raise CliError(str(error)) from None
+
+
+def cmd_detect(args: argparse.Namespace) -> int:
+    import json
+
+    from fusion.bed import estimate_bed_frame
+    from perception.cap import detections_json, tilt_deg
+    from perception.detect import detect_points, log_rerun, transform_result
+    from perception.instances import ClusterConfig
+    from pipeline.clouds import load_cloud
+    from pipeline.rerun_sink import rerun_stream
+
+    out = _writable_file(args.out)
+    rrd = _writable_file(args.rrd)
+    try:
+        cloud = load_cloud(Path(args.cloud))
+    except ValueError as error:
+        raise CliError(str(error)) from None
+    if cloud.unit_scale != 1.0:
+        print(f"note: {args.cloud} spans {np.ptp(cloud.points / cloud.unit_scale, axis=0).max():.0f} units, "
+              "so it is read as millimetres and converted to metres", file=sys.stderr)
+    model, _ = _load_model(args.model)
+    points = cloud.points
+    if cloud.in_bed_frame or args.bed_frame:
+        T_input_bed, frame = np.eye(4), "bed"
+    else:
+        try:
+            T_input_bed = estimate_bed_frame(points)
+        except (ValueError, RuntimeError) as error:
+            raise CliError(f"cannot find the bed plane: {error}") from None
+        frame = "input"
+    bed_points = (points - T_input_bed[:3, 3]) @ T_input_bed[:3, :3]
+    result = detect_points(model, bed_points, ClusterConfig(method=args.clustering))
+    result = transform_result(result, T_input_bed, frame)
+    up = T_input_bed[:3, 2]
+    print(f"{len(result.mushrooms)} caps in {args.cloud} ({len(points)} points, frame: {frame}, metres)")
+    if result.mushrooms:
+        print(f"{'id':>3} {'x mm':>8} {'y mm':>8} {'z mm':>8} {'tilt deg':>8} {'cap mm':>7} {'score':>6}")
+    for m in result.mushrooms:
+        x, y, z = 1000 * m.center
+        print(f"{m.id:>3} {x:>8.1f} {y:>8.1f} {z:>8.1f} {float(tilt_deg(m.axis, up)):>8.1f} "
+              f"{2000 * m.radius:>7.1f} {m.score:>6.2f}")
+    text = detections_json(result.mushrooms, frame)
+    payload = json.loads(text)
+    payload["T_input_bed"] = T_input_bed.tolist()
+    tmp = out.with_name(out.name + ".partial")
+    tmp.write_text(json.dumps(payload, indent=1))
+    tmp.replace(out)
+    with rerun_stream(rrd) as rec:
+        if rec is not None:
+            log_rerun(rec, result, points)
+    print(f"detections: {out}" + (f"  rerun: {rrd}" if rrd else ""))
+    return 0
+
+
+PAPER = {"ap25": {"meanshift": 0.9957, "dbscan": 0.9920}, "ap50": {"meanshift": 0.8195, "dbscan": 0.8148},
+         "scale_err": 0.048, "cosine": 0.9973, "angle_deg": 4.22}
+"""The paper's Tables 3-4 (synthetic validation set, MeanShift and DBSCAN)."""
+
+
+def _eval_table(name: str, results: dict) -> str:
+    rows = [("AP @ IoU 0.25", "ap25", "{:.2%}"), ("AP @ IoU 0.50", "ap50", "{:.2%}"),
+            ("scale rel. error", "scale_err", "{:.2%}"), ("orientation cosine", "cosine", "{:.4f}"),
+            ("orientation angle (deg)", "angle_deg", "{:.2f}")]
+    methods = list(results)
+    lines = [f"{name}: {results[methods[0]].n_gt} caps in the ground truth",
+             f"{'metric':<24}" + "".join(f"{'paper ' + m:>18}{'ours ' + m:>18}" for m in methods)]
+    for label, key, fmt in rows:
+        line = f"{label:<24}"
+        for method in methods:
+            paper = PAPER[key][method] if isinstance(PAPER[key], dict) else (PAPER[key] if method == "meanshift" else None)
+            line += f"{fmt.format(paper) if paper is not None else '-':>18}{fmt.format(getattr(results[method], key)):>18}"
+        lines.append(line)
+    return "\n".join(lines)
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    import json
+
+    from perception.detect import evaluate_on_scenes
+    from perception.synthetic.dataset import load_preset
+
+    json_path = _writable_file(args.json)
+    model, meta = _load_model(args.model)
+    report = {}
+    for name in args.set:
+        scenes = load_preset(name, args.visibility, progress=not args.quiet, limit=args.scenes)
+        results = evaluate_on_scenes(model, scenes, height=args.height, progress=not args.quiet)
+        print(_eval_table(name + (f" (first {len(scenes)} scenes)" if args.scenes else ""), results))
+        report[name] = {method: result.as_dict() for method, result in results.items()}
+    if json_path is not None:
+        tmp = json_path.with_name(json_path.name + ".partial")
+        tmp.write_text(json.dumps(report, indent=1))
+        tmp.replace(json_path)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="mushroom-pose", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -121,6 +259,43 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--no-ply", action="store_true", help="write only the .npz files")
     synth.add_argument("--quiet", action="store_true", help="no progress bar")
     synth.set_defaults(run=cmd_synth)
+
+    train = sub.add_parser("train", help="train the network on fresh synthetic beds (resumable)")
+    train.add_argument("--out", required=True, help="run folder: checkpoint.pt, history.csv, model.pt, .rrd")
+    train.add_argument("--iterations", type=_positive(int), default=20000, help="default 20000 (the paper's)")
+    train.add_argument("--lr", type=_positive(float), default=1e-3, help="Adam learning rate (default 1e-3)")
+    train.add_argument("--network", default="slim", help="network preset: slim (default) or fcgf")
+    train.add_argument("--seed", type=_non_negative_int, default=0)
+    train.add_argument("--checkpoint-every", type=_positive(int), default=200)
+    train.add_argument("--validate-every", type=_positive(int), default=1000)
+    train.add_argument("--validation-scenes", type=_non_negative_int, default=5,
+                       help="val50 scenes scored at each validation (0: none)")
+    train.add_argument("--resume", action="store_true", help="continue the checkpoint in --out exactly")
+    train.add_argument("--device", help="cpu or cuda (default: cuda when available)")
+    train.add_argument("--threads", type=_positive(int), help="torch threads (default: all cores)")
+    train.add_argument("--quiet", action="store_true", help="no progress bar")
+    train.set_defaults(run=cmd_train)
+
+    detect = sub.add_parser("detect", help="find caps in a point cloud (.ply, .pcd, .npz)")
+    detect.add_argument("cloud", help="the point cloud file")
+    detect.add_argument("--out", default="detections.json", help="detections JSON (default detections.json)")
+    detect.add_argument("--rrd", help="also write a Rerun recording of the result")
+    detect.add_argument("--model", help="weights file (default: the shipped model)")
+    detect.add_argument("--clustering", choices=["meanshift", "dbscan"], default="meanshift")
+    detect.add_argument("--bed-frame", action="store_true",
+                        help="the cloud is already in the bed frame (z up, origin on the bed plane)")
+    detect.set_defaults(run=cmd_detect)
+
+    evaluate = sub.add_parser("eval", help="the paper's metrics on val50/test50, beside the paper's numbers")
+    evaluate.add_argument("--set", nargs="+", choices=["val50", "test50"], default=["val50", "test50"])
+    evaluate.add_argument("--model", help="weights file (default: the shipped model)")
+    evaluate.add_argument("--json", help="also write the figures (fractions) to this JSON file")
+    evaluate.add_argument("--visibility", choices=["hpr", "camera", "katz"], default="hpr")
+    evaluate.add_argument("--height", choices=["free", "fixed"], default="free",
+                          help="cap height: fitted (default) or the paper's fixed s_z = 2 s / 3")
+    evaluate.add_argument("--scenes", type=_positive(int), help="only the first N scenes of each set")
+    evaluate.add_argument("--quiet", action="store_true")
+    evaluate.set_defaults(run=cmd_eval)
     return parser
 
 

@@ -79,8 +79,9 @@ def generate_many(seeds: list[int], config: SceneConfig, progress: bool = True,
         yield generate_scene(seed, config)
 
 
-def load_preset(name: str, visibility: str = "hpr", progress: bool = True) -> list[SyntheticScene]:
-    """The scenes of a named preset, generated once and cached on disk (never committed)."""
+def load_preset(name: str, visibility: str = "hpr", progress: bool = True,
+                limit: int | None = None) -> list[SyntheticScene]:
+    """The scenes (the first ``limit``) of a named preset, generated once and cached on disk (never committed)."""
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
     preset = PRESETS[name]
@@ -88,13 +89,14 @@ def load_preset(name: str, visibility: str = "hpr", progress: bool = True) -> li
     seeds = scene_seeds(preset.seed, preset.scenes)
     scenes = []
     config = SceneConfig(**{**preset.config.__dict__, "visibility": visibility})
-    missing = [i for i in range(preset.scenes) if not scene_path(directory, i).exists()]
+    count = preset.scenes if limit is None else min(limit, preset.scenes)
+    missing = [i for i in range(count) if not scene_path(directory, i).exists()]
     if missing:
         directory.mkdir(parents=True, exist_ok=True)
         for index, scene in zip(missing, generate_many([seeds[i] for i in missing], config, progress,
                                                        f"making {name}")):
             write_scene(scene, directory, index, ply=False)
-    for index in range(preset.scenes):
+    for index in range(count):
         scenes.append(SyntheticScene.load(scene_path(directory, index)))
     return scenes
 
@@ -106,3 +108,12 @@ def log_scene(rec, scene: SyntheticScene, entity: str = "world/synthetic") -> No
     log_points(rec, f"{entity}/points", scene.points, colors=label_colors(scene))
     log_caps(rec, f"{entity}/mushrooms", scene.centers, scene.rotations, scene.scales,
              labels=[f"{2000 * r:.0f} mm" for r in scene.radii])
+
+
+MIN_VISIBLE_CAP_POINTS = 5
+"""A cap counts as ground truth when at least this many of its points are visible: no method can
+find a cap the sensor did not see."""
+
+
+def ground_truth_mask(scene: SyntheticScene) -> np.ndarray:
+    return scene.visible_cap_points >= MIN_VISIBLE_CAP_POINTS

@@ -1,0 +1,136 @@
+"""From a point cloud in the bed frame to caps: voxelise, run the network, cluster, fit poses."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from perception.cap import Mushroom
+from perception.instances import ClusterConfig, cluster
+from perception.model import LENGTH_UNIT, MushroomNet
+from perception.pose import CapFit, fit_caps
+from perception.sparse import SparseTensor, voxelize
+
+
+@dataclass(frozen=True)
+class VoxelPrediction:
+    """The network's encoding on each occupied voxel (centroid of its points), and the point map."""
+
+    centroids: np.ndarray
+    existence: np.ndarray
+    centers: np.ndarray
+    """Predicted cap centre of each voxel: centroid + residual."""
+    orientation: np.ndarray
+    point_to_voxel: np.ndarray
+
+
+@dataclass(frozen=True)
+class SceneResult:
+    """Detected caps plus what led to them, per point of the input, in the input's frame."""
+
+    mushrooms: list[Mushroom]
+    fit: CapFit
+    point_labels: np.ndarray
+    point_existence: np.ndarray
+    voxels: VoxelPrediction
+    frame: str = "bed"
+    timings_ms: dict = field(default_factory=dict)
+
+
+def network_input(points: np.ndarray, voxel: float, device: torch.device | str = "cpu"):
+    """Voxel coords, the point-to-voxel map and voxel centroids of a cloud (N, 3) in metres."""
+    coords, point_to_voxel = voxelize(torch.from_numpy(np.ascontiguousarray(points, np.float64)), voxel)
+    counts = torch.bincount(point_to_voxel, minlength=len(coords)).clamp_(min=1).double()
+    centroids = torch.zeros(len(coords), 3, dtype=torch.float64).index_add_(
+        0, point_to_voxel, torch.from_numpy(np.ascontiguousarray(points, np.float64))) / counts[:, None]
+    return coords.to(device), point_to_voxel, centroids
+
+
+@torch.no_grad()
+def predict(model: MushroomNet, points: np.ndarray) -> VoxelPrediction:
+    device = next(model.parameters()).device
+    coords, point_to_voxel, centroids = network_input(points, model.config.voxel, device)
+    model.eval()
+    out = model(SparseTensor(torch.ones(len(coords), 1, device=device), coords)).double().cpu()
+    existence = torch.sigmoid(out[:, 0]).numpy()
+    centers = (centroids + out[:, 1:4] * LENGTH_UNIT).numpy()
+    orientation = out[:, 4].clamp(0.0, 1.0).numpy()
+    return VoxelPrediction(centroids.numpy(), existence, centers, orientation, point_to_voxel.numpy())
+
+
+def detect_points(model: MushroomNet, points: np.ndarray, cluster_config: ClusterConfig = ClusterConfig()) -> SceneResult:
+    """Caps in a cloud already in the bed frame (z up, metres)."""
+    timings = {}
+    start = time.perf_counter()
+    prediction = predict(model, points)
+    timings["network"] = 1000 * (time.perf_counter() - start)
+    start = time.perf_counter()
+    voxel_labels = cluster(prediction.centroids, prediction.centers, prediction.existence, model.config.voxel,
+                           cluster_config)
+    timings["instances"] = 1000 * (time.perf_counter() - start)
+    start = time.perf_counter()
+    fit = fit_caps(prediction.centroids, prediction.centers, prediction.orientation, prediction.existence,
+                   voxel_labels)
+    timings["pose"] = 1000 * (time.perf_counter() - start)
+    point_labels = voxel_labels[prediction.point_to_voxel]
+    mushrooms = [Mushroom(k, fit.centers[k], fit.rotations[k], fit.scales[k], float(fit.scores[k]),
+                          np.flatnonzero(point_labels == k)) for k in range(len(fit.centers))]
+    return SceneResult(mushrooms, fit, point_labels, prediction.existence[prediction.point_to_voxel], prediction,
+                       timings_ms=timings)
+
+
+DEFAULT_WEIGHTS = __import__("pathlib").Path(__file__).parent / "weights" / "default.pt"
+
+
+def transform_result(result: SceneResult, T_frame_bed: np.ndarray, frame: str) -> SceneResult:
+    """The same caps expressed in another frame (rotations and centres moved; sizes unchanged)."""
+    rotation, translation = T_frame_bed[:3, :3], T_frame_bed[:3, 3]
+    mushrooms = [Mushroom(m.id, rotation @ m.center + translation, rotation @ m.rotation, m.scales, m.score,
+                          m.point_indices) for m in result.mushrooms]
+    fit = CapFit(result.fit.centers @ rotation.T + translation, rotation @ result.fit.rotations, result.fit.scales,
+                 result.fit.scores, result.fit.counts)
+    voxels = VoxelPrediction(result.voxels.centroids @ rotation.T + translation, result.voxels.existence,
+                             result.voxels.centers @ rotation.T + translation, result.voxels.orientation,
+                             result.voxels.point_to_voxel)
+    return SceneResult(mushrooms, fit, result.point_labels, result.point_existence, voxels, frame, result.timings_ms)
+
+
+def log_rerun(rec, result: SceneResult, points: np.ndarray, entity: str = "world/perception") -> None:
+    """Existence on the points, the collapsed centres, and the caps as ellipsoids and boxes."""
+    import rerun as rr
+
+    from perception.rerun_log import log_caps
+
+    heat = np.clip(result.point_existence, 0, 1)[:, None]
+    colors = (255 * (heat * np.array([0.95, 0.25, 0.15]) + (1 - heat) * np.array([0.45, 0.4, 0.35]))).astype(np.uint8)
+    rec.log(f"{entity}/existence", rr.Points3D(points, colors=colors, radii=0.0012))
+    cap_voxels = result.voxels.existence > 0.5
+    rec.log(f"{entity}/centers", rr.Points3D(result.voxels.centers[cap_voxels], radii=0.0008, colors=(40, 120, 240)))
+    log_caps(rec, f"{entity}/mushrooms", result.fit.centers, result.fit.rotations, result.fit.scales,
+             labels=[f"#{m.id} {2000 * m.radius:.0f} mm" for m in result.mushrooms])
+
+
+def evaluate_on_scenes(model: MushroomNet, scenes, methods=("meanshift", "dbscan"), height: str = "free",
+                       progress: bool = False) -> dict:
+    """The paper's metrics of ``model`` on synthetic scenes, per clustering method (one network pass each)."""
+    from tqdm import tqdm
+
+    from perception.evaluate import SceneCaps, evaluate
+    from perception.synthetic.dataset import ground_truth_mask
+
+    preds: dict[str, list] = {m: [] for m in methods}
+    gts = []
+    for scene in tqdm(scenes, desc="evaluating", unit="scene", disable=not progress, leave=False):
+        prediction = predict(model, scene.points)
+        for method in methods:
+            labels = cluster(prediction.centroids, prediction.centers, prediction.existence, model.config.voxel,
+                             ClusterConfig(method=method))
+            fit = fit_caps(prediction.centroids, prediction.centers, prediction.orientation, prediction.existence,
+                           labels, height)
+            preds[method].append(SceneCaps(fit.centers, fit.rotations, fit.scales, fit.scores))
+        visible = ground_truth_mask(scene)
+        gts.append(SceneCaps(scene.centers[visible], scene.rotations[visible], scene.scales[visible]))
+    return {method: evaluate(preds[method], gts) for method in methods}

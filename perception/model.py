@@ -1,0 +1,120 @@
+"""The network: an FCGF-style residual sparse U-Net and the paper's per-voxel head (Sec. 3.1-3.2).
+
+The backbone follows FCGF's ResUNetBN2C (channels 32/64/128/256, transposed 64/64/64/128, a 7^3
+first convolution); ``NetworkConfig`` can slim it, which DESIGN.md section 9 invites where the
+validation metrics hold. The head is three linear layers mapping each voxel's features to five
+numbers: the existence logit, the residual centre (x, y, z, in ``LENGTH_UNIT``s) and the
+orientation value.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+from torch import nn
+
+from perception.sparse import (SparseBatchNorm, SparseConv3d, SparseConvTranspose3d, SparseReLU, SparseTensor,
+                               SubmanifoldConv3d, sparse_cat)
+
+LENGTH_UNIT = 0.1
+"""Residual centres are predicted, and their loss measured, in decimetres: the paper's x100 weight on
+their squared error then balances the other two terms."""
+
+
+@dataclass(frozen=True)
+class NetworkConfig:
+    channels: tuple[int, int, int, int] = (32, 64, 128, 256)
+    up_channels: tuple[int, int, int, int] = (64, 64, 64, 128)
+    first_kernel: int = 7
+    head_hidden: tuple[int, int] = (64, 32)
+    dropout: float = 0.1
+    voxel: float = 0.0045
+    """Voxel edge in metres."""
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @staticmethod
+    def from_dict(values: dict) -> "NetworkConfig":
+        values = dict(values)
+        for key in ("channels", "up_channels", "head_hidden"):
+            values[key] = tuple(values[key])
+        return NetworkConfig(**values)
+
+
+PRESETS = {
+    "fcgf": NetworkConfig(),
+    "slim": NetworkConfig(channels=(32, 48, 64, 96), up_channels=(48, 48, 64, 64), first_kernel=3),
+}
+
+
+class ResBlock(nn.Module):
+    """Two 3^3 submanifold convolutions with batch norm and an identity shortcut (FCGF's BasicBlock)."""
+
+    def __init__(self, channels: int):
+        super().__init__()
+        self.conv1 = SubmanifoldConv3d(channels, channels, 3)
+        self.norm1 = SparseBatchNorm(channels)
+        self.conv2 = SubmanifoldConv3d(channels, channels, 3)
+        self.norm2 = SparseBatchNorm(channels)
+        self.relu = SparseReLU()
+
+    def forward(self, x: SparseTensor) -> SparseTensor:
+        out = self.relu(self.norm1(self.conv1(x)))
+        out = self.norm2(self.conv2(out))
+        return out.replace_features(torch.relu(out.features + x.features))
+
+
+def _down(in_ch: int, out_ch: int) -> nn.ModuleDict:
+    return nn.ModuleDict({"conv": SparseConv3d(in_ch, out_ch, 3, stride=2), "norm": SparseBatchNorm(out_ch),
+                          "block": ResBlock(out_ch)})
+
+
+def _up(in_ch: int, out_ch: int) -> nn.ModuleDict:
+    return nn.ModuleDict({"conv": SparseConvTranspose3d(in_ch, out_ch, 3, stride=2),
+                          "norm": SparseBatchNorm(out_ch), "block": ResBlock(out_ch)})
+
+
+class MushroomNet(nn.Module):
+    """Sparse U-Net backbone + per-voxel head; input one constant feature per voxel (geometry only)."""
+
+    def __init__(self, config: NetworkConfig = NetworkConfig()):
+        super().__init__()
+        self.config = config
+        c1, c2, c3, c4 = config.channels
+        u1, u2, u3, u4 = config.up_channels
+        self.relu = SparseReLU()
+        self.conv1 = SubmanifoldConv3d(1, c1, config.first_kernel)
+        self.norm1 = SparseBatchNorm(c1)
+        self.block1 = ResBlock(c1)
+        self.down2, self.down3, self.down4 = _down(c1, c2), _down(c2, c3), _down(c3, c4)
+        self.up4 = _up(c4, u4)
+        self.up3 = _up(c3 + u4, u3)
+        self.up2 = _up(c2 + u3, u2)
+        self.conv1_tr = SubmanifoldConv3d(c1 + u2, u1, 1)
+        h1, h2 = config.head_hidden
+        self.head = nn.Sequential(nn.Linear(u1, h1), nn.ReLU(), nn.Dropout(config.dropout),
+                                  nn.Linear(h1, h2), nn.ReLU(), nn.Dropout(config.dropout), nn.Linear(h2, 5))
+
+    def _step_down(self, stage: nn.ModuleDict, x: SparseTensor) -> SparseTensor:
+        return stage["block"](self.relu(stage["norm"](stage["conv"](x))))
+
+    def _step_up(self, stage: nn.ModuleDict, x: SparseTensor, target: SparseTensor) -> SparseTensor:
+        return stage["block"](self.relu(stage["norm"](stage["conv"](x, target))))
+
+    def forward(self, x: SparseTensor) -> torch.Tensor:
+        """(V, 5) raw outputs per input voxel: existence logit, residual (LENGTH_UNITs), orientation."""
+        s1 = self.block1(self.relu(self.norm1(self.conv1(x))))
+        s2 = self._step_down(self.down2, s1)
+        s4 = self._step_down(self.down3, s2)
+        s8 = self._step_down(self.down4, s4)
+        up = self._step_up(self.up4, s8, s4)
+        up = self._step_up(self.up3, sparse_cat(s4, up), s2)
+        up = self._step_up(self.up2, sparse_cat(s2, up), s1)
+        features = self.relu(self.conv1_tr(sparse_cat(s1, up))).features
+        return self.head(features)
+
+
+def count_parameters(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters())

@@ -1,0 +1,283 @@
+"""Training on a fresh synthetic bed per iteration (paper Sec. 4), on CPU or GPU, resumable exactly.
+
+Scene generation runs in a worker process that feeds a bounded queue, so the network and the
+generator keep both cores busy. Iteration i always trains on the scene and augmentation drawn from
+seed (run seed, i), and a checkpoint holds model, optimiser, schedule and torch RNG state: a
+resumed run continues exactly where it stopped.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import multiprocessing as mp
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import rerun as rr
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from perception.cap import cap_rotation
+from perception.encoding import encode
+from perception.model import LENGTH_UNIT, PRESETS as NETWORK_PRESETS, MushroomNet, NetworkConfig
+from perception.sparse import SparseTensor
+from perception.synthetic.scene import SceneConfig, generate_scene
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """The paper's recipe (Sec. 4) with our augmentations; every field is a CLI flag."""
+
+    iterations: int = 20000
+    lr: float = 1e-3
+    milestones: tuple[float, ...] = (0.6, 0.85)
+    """Fractions of ``iterations`` where the learning rate drops by ``gamma``."""
+    gamma: float = 0.1
+    weight_existence: float = 1.0
+    weight_residual: float = 100.0
+    weight_orientation: float = 1.0
+    network: str = "slim"
+    seed: int = 0
+    checkpoint_every: int = 200
+    validate_every: int = 1000
+    validation_scenes: int = 5
+    queue_size: int = 6
+    rotate_z: bool = True
+    scale_jitter: tuple[float, float] = (0.9, 1.1)
+    point_dropout: tuple[float, float] = (0.0, 0.2)
+    tilt_deg: float = 3.0
+    """Random tilt of the whole bed, as left by an imperfect bed-plane estimate."""
+    noise: float = 0.0005
+    """Standard deviation (metres) of Gaussian jitter on the points."""
+    scene: SceneConfig = field(default_factory=SceneConfig)
+
+    def to_dict(self) -> dict:
+        values = asdict(self)
+        values["scene"] = {k: v for k, v in values["scene"].items() if k != "sensor"}
+        return values
+
+
+def iteration_seed(run_seed: int, iteration: int) -> int:
+    return int(np.random.SeedSequence([run_seed, iteration]).generate_state(1)[0])
+
+
+def augmented_sample(config: TrainConfig, iteration: int) -> dict[str, np.ndarray]:
+    """Points and per-point targets of iteration ``iteration``'s scene after augmentation."""
+    seed = iteration_seed(config.seed, iteration)
+    scene = generate_scene(seed, config.scene)
+    rng = np.random.default_rng(seed + 1)
+    rotation = np.eye(3)
+    if config.rotate_z:
+        angle = rng.uniform(0, 2 * np.pi)
+        c, s = np.cos(angle), np.sin(angle)
+        rotation = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    tilt = np.radians(config.tilt_deg)
+    if tilt > 0:
+        rotation = cap_rotation(rng.uniform(-tilt, tilt), rng.uniform(-tilt, tilt)) @ rotation
+    scale = rng.uniform(*config.scale_jitter)
+    keep = rng.random(len(scene.points)) >= rng.uniform(*config.point_dropout)
+    points = scale * scene.points[keep].astype(np.float64) @ rotation.T
+    points += rng.normal(0.0, config.noise, points.shape)
+    centers = scale * scene.centers @ rotation.T
+    rotations = rotation @ scene.rotations
+    targets = encode(points, scene.instance[keep], scene.is_cap[keep], centers, rotations, scale * scene.scales)
+    return {"iteration": iteration, "points": points.astype(np.float32), "existence": targets.existence,
+            "residual": targets.residual, "orientation": targets.orientation}
+
+
+def _producer(config: TrainConfig, start: int, stop: int, queue: mp.Queue) -> None:
+    torch.set_num_threads(1)
+    for iteration in range(start, stop):
+        queue.put(augmented_sample(config, iteration))
+
+
+def voxel_targets(sample: dict, voxel: float):
+    """Network input and per-voxel targets (means over each voxel's points)."""
+    from perception.detect import network_input
+
+    coords, point_to_voxel, centroids = network_input(sample["points"], voxel)
+    counts = torch.bincount(point_to_voxel, minlength=len(coords)).clamp_(min=1).float()[:, None]
+
+    def mean(values: np.ndarray) -> torch.Tensor:
+        values = torch.from_numpy(values).float().reshape(len(point_to_voxel), -1)
+        return torch.zeros(len(coords), values.shape[1]).index_add_(0, point_to_voxel, values) / counts
+
+    points = torch.from_numpy(sample["points"]).double()
+    # residual of a voxel: its points' mean cap centre minus the voxel centroid, in LENGTH_UNITs
+    center_of_point = (points + torch.from_numpy(sample["residual"]).double()).float().numpy()
+    existence = mean(sample["existence"])[:, 0]
+    center_sum = mean(center_of_point * sample["existence"][:, None])
+    residual = torch.where(existence[:, None] > 0, center_sum / existence.clamp(min=1e-6)[:, None]
+                           - centroids.float(), torch.zeros(1)) / LENGTH_UNIT
+    orientation = mean(sample["orientation"])[:, 0] / existence.clamp(min=1e-6)
+    return coords, existence, residual * (existence[:, None] > 0), orientation * (existence > 0)
+
+
+def loss_terms(output: torch.Tensor, existence: torch.Tensor, residual: torch.Tensor, orientation: torch.Tensor,
+               config: TrainConfig) -> dict[str, torch.Tensor]:
+    """The paper's multi-task loss: BCE on existence, MSE on residual centre and orientation."""
+    terms = {
+        "existence": F.binary_cross_entropy_with_logits(output[:, 0], existence),
+        "residual": F.mse_loss(output[:, 1:4], residual),
+        "orientation": F.mse_loss(output[:, 4], orientation),
+    }
+    terms["total"] = (config.weight_existence * terms["existence"] + config.weight_residual * terms["residual"]
+                      + config.weight_orientation * terms["orientation"])
+    return terms
+
+
+def _atomic_save(payload: dict, path: Path) -> None:
+    tmp = path.with_name(path.name + ".partial")
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
+
+
+def validate(model: MushroomNet, scenes) -> dict[str, float]:
+    from perception.detect import evaluate_on_scenes
+
+    metrics = evaluate_on_scenes(model, scenes, methods=("meanshift",))["meanshift"].as_dict()
+    model.train()
+    return metrics
+
+
+def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str | None = None,
+          progress: bool = True, rerun: bool = True, stop_at: int | None = None,
+          max_minutes: float | None = None) -> Path | None:
+    """Train (or continue training) into ``run_dir``; returns the final weights, or None when the run
+    stopped early (at iteration ``stop_at`` or after ``max_minutes``) with a checkpoint to resume."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    device = device or ("cuda" if torch.cuda.is_available() else "cpu")
+    checkpoint_path = run_dir / "checkpoint.pt"
+    network_config = NETWORK_PRESETS[config.network]
+    torch.manual_seed(config.seed)
+    model = MushroomNet(network_config).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
+    milestones = [int(f * config.iterations) for f in config.milestones]
+    scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, milestones, config.gamma)
+    start, elapsed_before = 0, 0.0
+    if resume and checkpoint_path.exists():
+        state = torch.load(checkpoint_path, map_location=device, weights_only=False)
+        if state["train_config"] != config.to_dict():
+            raise ValueError(f"{checkpoint_path} was made with a different configuration; "
+                             "resume with the same flags or use a new run folder")
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        torch.set_rng_state(state["torch_rng"])
+        start, elapsed_before = state["iteration"], state["elapsed_s"]
+    else:
+        (run_dir / "history.csv").unlink(missing_ok=True)
+    (run_dir / "train_config.json").write_text(json.dumps(config.to_dict(), indent=1))
+
+    validation = None
+    if config.validation_scenes > 0:
+        from perception.synthetic.dataset import load_preset
+        validation = load_preset("val50", progress=False, limit=config.validation_scenes)
+
+    rec = None
+    if rerun:
+        rec = rr.RecordingStream("mushroom-pose-train")
+        rec.save(run_dir / f"train_from_{start:06d}.rrd")
+
+    context = mp.get_context("fork")
+    queue = context.Queue(maxsize=config.queue_size)
+    producer = context.Process(target=_producer, args=(config, start, config.iterations, queue), daemon=True)
+    producer.start()
+    history = open(run_dir / "history.csv", "a", newline="")
+    writer = csv.writer(history)
+    if start == 0:
+        writer.writerow(["iteration", "lr", "total", "existence", "residual", "orientation", "seconds",
+                         "val_ap25", "val_ap50", "val_angle_deg", "val_scale_err"])
+    model.train()
+    bar = tqdm(total=config.iterations, initial=start, desc="train", unit="it", disable=not progress,
+               dynamic_ncols=True)
+    session_start = time.perf_counter()
+
+    def save(iteration: int) -> None:
+        _atomic_save({"model": model.state_dict(), "optimizer": optimizer.state_dict(),
+                      "scheduler": scheduler.state_dict(), "torch_rng": torch.get_rng_state(),
+                      "iteration": iteration, "elapsed_s": elapsed_before + time.perf_counter() - session_start,
+                      "train_config": config.to_dict(), "network": network_config.to_dict()}, checkpoint_path)
+
+    end = config.iterations if stop_at is None else min(stop_at, config.iterations)
+    deadline = None if max_minutes is None else session_start + 60 * max_minutes
+    try:
+        for iteration in range(start, end):
+            if deadline is not None and time.perf_counter() > deadline:
+                end = iteration
+                break
+            sample = queue.get(timeout=600)
+            assert sample["iteration"] == iteration
+            coords, existence, residual, orientation = voxel_targets(sample, network_config.voxel)
+            coords = coords.to(device)
+            output = model(SparseTensor(torch.ones(len(coords), 1, device=device), coords))
+            terms = loss_terms(output, existence.to(device), residual.to(device), orientation.to(device), config)
+            optimizer.zero_grad(set_to_none=True)
+            terms["total"].backward()
+            optimizer.step()
+            scheduler.step()
+            values = {k: v.item() for k, v in terms.items()}
+            row = [iteration + 1, scheduler.get_last_lr()[0], values["total"], values["existence"],
+                   values["residual"], values["orientation"],
+                   round(elapsed_before + time.perf_counter() - session_start, 1)]
+            if rec is not None:
+                rec.set_time("iteration", sequence=iteration + 1)
+                for name, value in values.items():
+                    rec.log(f"stats/loss/{name}", rr.Scalars(value))
+            metrics = {}
+            if validation is not None and (iteration + 1) % config.validate_every == 0:
+                metrics = validate(model, validation)
+                tqdm.write(f"iteration {iteration + 1}: val AP@25 {metrics['ap25']:.3f}  AP@50 {metrics['ap50']:.3f}  "
+                           f"angle {metrics['angle_deg']:.2f} deg  scale err {metrics['scale_err']:.3f}")
+                if rec is not None:
+                    for name in ("ap25", "ap50", "angle_deg", "scale_err"):
+                        rec.log(f"stats/val/{name}", rr.Scalars(metrics[name]))
+            writer.writerow(row + [metrics.get("ap25", ""), metrics.get("ap50", ""), metrics.get("angle_deg", ""),
+                                   metrics.get("scale_err", "")])
+            bar.set_postfix(loss=f"{values['total']:.3f}", ex=f"{values['existence']:.3f}",
+                            res=f"{values['residual']:.4f}", ori=f"{values['orientation']:.4f}", refresh=False)
+            bar.update(1)
+            if (iteration + 1) % config.checkpoint_every == 0:
+                history.flush()
+                save(iteration + 1)
+        save(end)
+    finally:
+        bar.close()
+        history.close()
+        producer.terminate()
+        if rec is not None:
+            rec.flush()
+    if end < config.iterations:
+        return None
+    weights = run_dir / "model.pt"
+    state = torch.load(checkpoint_path, map_location="cpu", weights_only=False)
+    model.load_state_dict(state["model"])
+    save_weights(model, weights, train_config=state["train_config"], iterations=state["iteration"],
+                 train_seconds=state["elapsed_s"])
+    return weights
+
+
+def save_weights(model: MushroomNet, path: Path, **meta) -> None:
+    """The shipped form of a model: its weights, its network config and how it was made."""
+    _atomic_save({"model": model.state_dict(), "network": model.config.to_dict(), **meta}, Path(path))
+
+
+def load_weights(path: Path, device: str = "cpu") -> tuple[MushroomNet, dict]:
+    """A trained network and its metadata from a weights file (model.pt) or a checkpoint."""
+    try:
+        state = torch.load(path, map_location=device, weights_only=False)
+        network = NetworkConfig.from_dict(state["network"])
+        model = MushroomNet(network).to(device)
+        model.load_state_dict(state["model"])
+    except FileNotFoundError:
+        raise
+    except Exception as error:
+        raise ValueError(f"{path} is not a mushroom-pose weights file ({type(error).__name__})") from None
+    model.eval()
+    return model, {k: v for k, v in state.items() if k not in ("model", "optimizer", "scheduler", "torch_rng")}
+

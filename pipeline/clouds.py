@@ -1,0 +1,66 @@
+"""Reading the point clouds users hand to ``detect``: .ply, .pcd, our .npz scenes (and their checks)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+CLOUD_SUFFIXES = (".ply", ".pcd", ".npz")
+MILLIMETRE_EXTENT = 20.0
+"""A bed is under a few metres across: a cloud spanning more than this many units is in millimetres."""
+
+
+@dataclass(frozen=True)
+class LoadedCloud:
+    points: np.ndarray
+    """(N, 3) float64 metres."""
+    in_bed_frame: bool
+    """True for our synthetic scenes, which are stored in the bed frame."""
+    unit_scale: float = 1.0
+    """Metres per input unit (0.001 when the file was in millimetres)."""
+
+
+def load_cloud(path: Path) -> LoadedCloud:
+    """A cloud in metres; raises ValueError with a one-line reason when the file cannot be used."""
+    path = Path(path)
+    if not path.exists():
+        raise ValueError(f"{path} does not exist")
+    suffix = path.suffix.lower()
+    if suffix == ".npz":
+        try:
+            with np.load(path) as data:
+                points = np.asarray(data["points"], np.float64)
+        except Exception as error:
+            raise ValueError(f"{path} is not a mushroom-pose scene (.npz with 'points'): {type(error).__name__}") from None
+        in_bed = True
+    elif suffix in (".ply", ".pcd"):
+        import open3d as o3d
+
+        cloud = o3d.io.read_point_cloud(str(path))
+        points = np.asarray(cloud.points, np.float64)
+        if len(points) == 0 and path.stat().st_size > 0 and not _looks_like(path, suffix):
+            raise ValueError(f"{path} is not a readable {suffix} point cloud")
+        in_bed = False
+    else:
+        raise ValueError(f"{path}: unsupported cloud format {suffix or '(none)'}; use one of {', '.join(CLOUD_SUFFIXES)}")
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"{path}: expected N x 3 points, got shape {points.shape}")
+    finite = np.isfinite(points).all(1)
+    if not finite.all():
+        raise ValueError(f"{path}: {np.count_nonzero(~finite)} of {len(points)} points are NaN or infinite; "
+                         "remove them (invalid depth) and try again")
+    if len(points) == 0:
+        raise ValueError(f"{path}: the cloud is empty")
+    scale = 1.0
+    extent = float(np.max(points.max(0) - points.min(0)))
+    if extent > MILLIMETRE_EXTENT:
+        scale = 0.001
+        points = points * scale
+    return LoadedCloud(points, in_bed, scale)
+
+
+def _looks_like(path: Path, suffix: str) -> bool:
+    head = path.read_bytes()[:16]
+    return head.startswith(b"ply") if suffix == ".ply" else b"VERSION" in path.read_bytes()[:200] or head.startswith(b"#")

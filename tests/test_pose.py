@@ -1,0 +1,65 @@
+"""Pose from the encoding: exact on ideal caps, vectorised over instances."""
+
+import numpy as np
+import pytest
+
+from perception.cap import CAP_HEIGHT_RATIO, axis_to_angles, cap_rotation, rotation_from_axis
+from perception.pose import fit_caps
+
+
+def ideal_cap(center, theta_x, theta_y, spin, s, s_z, n=400, seed=0):
+    """Points on the upper half of the cap ellipsoid with their exact encodings."""
+    rng = np.random.default_rng(seed)
+    azimuth = rng.uniform(0, 2 * np.pi, n)
+    elevation = rng.uniform(0.05, np.pi / 2, n)
+    local = np.stack([s * np.cos(elevation) * np.cos(azimuth), s * np.cos(elevation) * np.sin(azimuth),
+                      s_z * np.sin(elevation)], 1)
+    rotation = cap_rotation(theta_x, theta_y, spin)
+    points = local @ rotation.T + center
+    orientation = local[:, 2] / s_z
+    return points, np.tile(center, (n, 1)), orientation, rotation
+
+
+def test_axis_angles_round_trip():
+    for theta_x, theta_y in [(0.3, -0.5), (-0.7, 0.2), (0.0, 0.0)]:
+        axis = cap_rotation(theta_x, theta_y)[:, 2]
+        np.testing.assert_allclose(axis_to_angles(axis), (theta_x, theta_y), atol=1e-12)
+        np.testing.assert_allclose(rotation_from_axis(axis), cap_rotation(theta_x, theta_y), atol=1e-12)
+
+
+@pytest.mark.parametrize("height", ["free", "fixed"])
+def test_ideal_caps_are_recovered_exactly_all_at_once(height):
+    caps = [((0.0, 0.0, 0.01), 0.4, -0.3, 1.0, 0.02), ((0.1, 0.05, 0.0), -0.6, 0.1, 2.0, 0.012),
+            ((-0.08, 0.1, 0.02), 0.0, 0.7, 0.3, 0.028)]
+    parts = [ideal_cap(np.array(c), tx, ty, sp, s, CAP_HEIGHT_RATIO * s, seed=i)
+             for i, (c, tx, ty, sp, s) in enumerate(caps)]
+    points = np.concatenate([p[0] for p in parts])
+    centers = np.concatenate([p[1] for p in parts])
+    orientation = np.concatenate([p[2] for p in parts])
+    labels = np.repeat([2, 0, 1], 400)
+    noise_points = np.array([[0.2, 0.2, 0.0]])
+    fit = fit_caps(np.vstack([points, noise_points]), np.vstack([centers, noise_points]),
+                   np.append(orientation, 0.5), np.ones(len(points) + 1), np.append(labels, -1), height)
+    assert len(fit.centers) == 3
+    for label, (c, tx, ty, _, s) in zip([2, 0, 1], caps):
+        true_axis = cap_rotation(tx, ty)[:, 2]
+        np.testing.assert_allclose(fit.centers[label], c, atol=1e-12)
+        np.testing.assert_allclose(fit.rotations[label][:, 2], true_axis, atol=1e-9)
+        np.testing.assert_allclose(fit.scales[label], [s, s, CAP_HEIGHT_RATIO * s], rtol=1e-9)
+    np.testing.assert_array_equal(fit.counts, [400, 400, 400])
+
+
+def test_free_height_fits_flatter_and_taller_caps_the_fixed_ratio_cannot():
+    s = 0.02
+    for ratio in (0.5, 0.9):
+        points, centers, orientation, _ = ideal_cap(np.zeros(3), 0.2, 0.3, 0.0, s, ratio * s)
+        labels = np.zeros(len(points), np.int64)
+        free = fit_caps(points, centers, orientation, np.ones(len(points)), labels, "free")
+        fixed = fit_caps(points, centers, orientation, np.ones(len(points)), labels, "fixed")
+        np.testing.assert_allclose(free.scales[0], [s, s, ratio * s], rtol=1e-9)
+        assert abs(fixed.scales[0, 0] - s) > 0.02 * s
+
+
+def test_no_instances_gives_empty_fit():
+    fit = fit_caps(np.zeros((5, 3)), np.zeros((5, 3)), np.zeros(5), np.zeros(5), np.full(5, -1))
+    assert fit.centers.shape == (0, 3) and fit.rotations.shape == (0, 3, 3)

@@ -1,0 +1,88 @@
+"""Training: targets agree with the encoding, the loss is the paper's, resume continues exactly."""
+
+import numpy as np
+import pytest
+import torch
+
+from perception.model import LENGTH_UNIT, PRESETS, MushroomNet, NetworkConfig
+from perception.sparse import SparseTensor
+from perception.synthetic.scene import SceneConfig
+from perception.train import TrainConfig, augmented_sample, load_weights, loss_terms, train, voxel_targets
+
+TINY = NetworkConfig(channels=(8, 8, 8, 8), up_channels=(8, 8, 8, 8), first_kernel=3, head_hidden=(8, 8))
+SMALL_SCENES = SceneConfig(mushrooms=(3, 5))
+
+
+@pytest.fixture
+def tiny_network(monkeypatch):
+    monkeypatch.setitem(PRESETS, "tiny", TINY)
+    return "tiny"
+
+
+def test_augmented_samples_are_deterministic_and_consistent():
+    config = TrainConfig(scene=SMALL_SCENES)
+    a, b = augmented_sample(config, 3), augmented_sample(config, 3)
+    np.testing.assert_array_equal(a["points"], b["points"])
+    assert not np.array_equal(a["points"], augmented_sample(config, 4)["points"])
+    cap = a["existence"] > 0
+    assert cap.any() and np.all(a["residual"][~cap] == 0) and np.all(a["orientation"][~cap] == 0)
+    assert np.all((a["orientation"] >= 0) & (a["orientation"] <= 1))
+
+
+def test_voxel_targets_are_point_targets_averaged_per_voxel():
+    sample = augmented_sample(TrainConfig(scene=SMALL_SCENES), 1)
+    coords, existence, residual, orientation = voxel_targets(sample, 0.0045)
+    voxel_of = np.floor(sample["points"].astype(np.float64) / 0.0045).astype(np.int64)
+    _, first, inverse, counts = np.unique(voxel_of, axis=0, return_index=True, return_inverse=True, return_counts=True)
+    assert len(coords) == len(first)
+    single = np.flatnonzero((counts == 1) & (sample["existence"][first] > 0))
+    rows = {tuple(c): i for i, c in enumerate(coords[:, 1:].tolist())}
+    for v in single[:50]:
+        row = rows[tuple(voxel_of[first[v]])]
+        assert existence[row] == 1
+        np.testing.assert_allclose(residual[row].numpy() * LENGTH_UNIT, sample["residual"][first[v]], atol=1e-6)
+        np.testing.assert_allclose(orientation[row].item(), sample["orientation"][first[v]], atol=1e-6)
+
+
+def test_loss_is_bce_plus_weighted_mse():
+    output = torch.tensor([[0.0, 1.0, 0.0, 0.0, 0.5], [2.0, 0.0, 0.0, 0.0, 0.0]])
+    existence, residual, orientation = torch.tensor([1.0, 0.0]), torch.zeros(2, 3), torch.tensor([1.0, 0.0])
+    terms = loss_terms(output, existence, residual, orientation, TrainConfig())
+    bce = -(np.log(0.5) + np.log(1 - 1 / (1 + np.exp(-2.0)))) / 2
+    assert terms["existence"].item() == pytest.approx(bce, rel=1e-6)
+    assert terms["residual"].item() == pytest.approx(1.0 / 6, rel=1e-6)
+    assert terms["orientation"].item() == pytest.approx(0.25 / 2, rel=1e-6)
+    assert terms["total"].item() == pytest.approx(bce + 100 / 6 + 0.125, rel=1e-6)
+
+
+def test_resume_continues_exactly(tmp_path, tiny_network):
+    config = TrainConfig(iterations=4, network=tiny_network, checkpoint_every=2, validation_scenes=0,
+                         scene=SMALL_SCENES, queue_size=2)
+    straight = train(config, tmp_path / "straight", progress=False, rerun=False)
+    assert train(config, tmp_path / "resumed", progress=False, rerun=False, stop_at=2) is None
+    assert torch.load(tmp_path / "resumed" / "checkpoint.pt", weights_only=False)["iteration"] == 2
+    resumed = train(config, tmp_path / "resumed", resume=True, progress=False, rerun=False)
+    model_a, meta = load_weights(straight)
+    model_b, _ = load_weights(resumed)
+    for a, b in zip(model_a.state_dict().values(), model_b.state_dict().values()):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert meta["iterations"] == 4 and meta["train_seconds"] > 0
+    history = (tmp_path / "resumed" / "history.csv").read_text().splitlines()
+    assert [line.split(",")[0] for line in history[1:]] == ["1", "2", "3", "4"]
+
+
+def test_resume_with_other_flags_is_refused(tmp_path, tiny_network):
+    config = TrainConfig(iterations=2, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
+    train(config, tmp_path, progress=False, rerun=False, stop_at=1)
+    with pytest.raises(ValueError, match="different configuration"):
+        train(TrainConfig(**{**config.__dict__, "lr": 0.5}), tmp_path, resume=True, progress=False, rerun=False)
+
+
+def test_network_runs_on_any_device_and_predicts_five_values():
+    model = MushroomNet(TINY).eval()
+    coords = torch.tensor([[0, x, y, z] for x in range(4) for y in range(3) for z in range(2)])
+    out = model(SparseTensor(torch.ones(len(coords), 1), coords))
+    assert out.shape == (len(coords), 5)
+    if torch.cuda.is_available():
+        cuda_out = model.cuda()(SparseTensor(torch.ones(len(coords), 1, device="cuda"), coords.cuda()))
+        assert cuda_out.shape == (len(coords), 5)
