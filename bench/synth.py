@@ -4,6 +4,12 @@ Reference: the paper authors' generator takes about 340 ms per scene (median, K 
 12.7 k points) on this machine class; the target here is at most 70 ms for the same density.
 Usage: python bench/synth.py [--scenes N] [--models hpr camera katz]
 """
+import sys
+from pathlib import Path
+
+# bench/perception.py would shadow the perception package: take this folder off the import path
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
+
 
 import argparse
 import os

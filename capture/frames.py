@@ -97,3 +97,18 @@ def voxel_representatives(points: np.ndarray, voxel: float) -> np.ndarray:
     flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
     _, first = np.unique(flat, return_index=True)
     return np.sort(first)
+
+
+def log_rerun(rec, frame: DepthFrame, entity: str | None = None) -> None:
+    """A frame in Rerun under ``world/camera/<id>``: its pose, pinhole, depth image and colour."""
+    import rerun as rr
+
+    entity = entity or f"world/camera/{frame.sensor_id}"
+    if frame.T_world_camera is not None:
+        rec.log(entity, rr.Transform3D(translation=frame.T_world_camera[:3, 3], mat3x3=frame.T_world_camera[:3, :3]))
+    rec.log(entity, rr.Pinhole(image_from_camera=frame.intrinsics.matrix,
+                               resolution=[frame.intrinsics.width, frame.intrinsics.height],
+                               camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.05))
+    rec.log(f"{entity}/depth", rr.DepthImage(frame.depth, meter=1.0 / frame.depth_scale))
+    if frame.color is not None:
+        rec.log(f"{entity}/color", rr.Image(frame.color))

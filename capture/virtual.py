@@ -12,6 +12,7 @@ import numpy as np
 import open3d as o3d
 
 from capture.frames import CameraIntrinsics, DepthFrame
+from capture.source import Source
 
 
 @dataclass(frozen=True)
@@ -44,10 +45,12 @@ class Render:
 class MeshScene:
     """Triangle meshes ready for ray casting; build once, render from many poses."""
 
-    def __init__(self, vertices: np.ndarray, triangles: np.ndarray) -> None:
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray, threads: int = 1) -> None:
+        """``threads`` = 0 uses every core (live rendering); 1 keeps data generation on one core."""
         if len(triangles) == 0:
             raise ValueError("nothing to render: the mesh has no triangles")
-        self._scene = o3d.t.geometry.RaycastingScene(nthreads=1)
+        self._threads = threads
+        self._scene = o3d.t.geometry.RaycastingScene(nthreads=threads)
         self._scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),
                                   o3d.core.Tensor(np.ascontiguousarray(triangles, np.uint32)))
         self._ray_cache: dict[CameraIntrinsics, np.ndarray] = {}
@@ -66,7 +69,7 @@ class MeshScene:
         rays = np.empty((len(directions), 6), np.float32)
         rays[:, :3] = T_world_camera[:3, 3]
         rays[:, 3:] = directions
-        hit = self._scene.cast_rays(o3d.core.Tensor(rays), nthreads=1)
+        hit = self._scene.cast_rays(o3d.core.Tensor(rays), nthreads=self._threads)
         depth = hit["t_hit"].numpy()
         missed = ~np.isfinite(depth)
         depth[missed] = 0.0
@@ -102,3 +105,97 @@ def to_depth_frame(depth_m: np.ndarray, intrinsics: CameraIntrinsics, sensor: Se
     units = np.round(depth_m / sensor.depth_scale)
     return DepthFrame(np.clip(units, 0, 65535).astype(np.uint16), sensor.depth_scale, intrinsics,
                       timestamp_ns, sensor_id, None, T_world_camera, turntable_angle)
+
+
+@dataclass(frozen=True)
+class Turntable:
+    """A camera turning about an axis: ``T_world_camera(angle)`` is the reference pose rotated by ``angle``."""
+
+    axis_point: np.ndarray
+    axis_direction: np.ndarray
+    T_world_reference: np.ndarray
+
+    def rotation(self, angle: float) -> np.ndarray:
+        """T_world_world of a turn by ``angle`` (radians, right-handed about the axis)."""
+        from scipy.spatial.transform import Rotation
+
+        direction = np.asarray(self.axis_direction, np.float64)
+        direction = direction / np.linalg.norm(direction)
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(angle * direction).as_matrix()
+        T[:3, 3] = self.axis_point - T[:3, :3] @ self.axis_point
+        return T
+
+    def T_world_camera(self, angle: float) -> np.ndarray:
+        return self.rotation(angle) @ self.T_world_reference
+
+
+def circle_rig(target: np.ndarray, radius: float, height: float,
+               axis: np.ndarray = np.array([0.0, 0.0, 1.0])) -> Turntable:
+    """A camera ``radius`` off the axis through ``target``, ``height`` above it, looking at ``target``."""
+    from capture.frames import look_at
+
+    axis = np.asarray(axis, np.float64) / np.linalg.norm(axis)
+    side = np.cross(axis, [0.0, 1.0, 0.0] if abs(axis[1]) < 0.9 else [1.0, 0.0, 0.0])
+    side /= np.linalg.norm(side)
+    eye = np.asarray(target, np.float64) + radius * side + height * axis
+    return Turntable(np.asarray(target, np.float64), axis, look_at(eye, target, up_hint=axis))
+
+
+@dataclass(frozen=True)
+class VirtualCameraConfig:
+    """A virtual depth camera over given meshes: fixed poses, or N views of a turntable."""
+
+    intrinsics: CameraIntrinsics = CameraIntrinsics.realsense_d405()
+    sensor: SensorModel = SensorModel()
+    poses: tuple = ()
+    """Fixed T_world_camera poses (4x4); used when no turntable is given."""
+    turntable: Turntable | None = None
+    views: int = 18
+    fps: float = 15.0
+    """Frame rate of the timestamps (the frames themselves come as fast as they render)."""
+    seed: int = 0
+    sensor_id: str = "virtual"
+    start_ns: int = 0
+
+
+class VirtualSource(Source):
+    """Renders each view of the config in turn, with the true pose on every frame."""
+
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray, config: VirtualCameraConfig):
+        if config.turntable is None and not config.poses:
+            raise ValueError("a virtual camera needs fixed poses or a turntable")
+        self.config = config
+        self._vertices, self._triangles = vertices, triangles
+        self._scene: MeshScene | None = None
+        self._index = 0
+        self._rng = np.random.default_rng(config.seed)
+
+    def _pose(self, index: int) -> tuple[np.ndarray, float | None]:
+        if self.config.turntable is not None:
+            angle = 2 * np.pi * index / self.config.views
+            return self.config.turntable.T_world_camera(angle), angle
+        return np.asarray(self.config.poses[index], np.float64), None
+
+    def __len__(self) -> int:
+        return self.config.views if self.config.turntable is not None else len(self.config.poses)
+
+    def open(self) -> None:
+        if self._scene is None:
+            self._scene = MeshScene(self._vertices, self._triangles, threads=0)
+
+    def read(self) -> DepthFrame | None:
+        if self._index >= len(self):
+            return None
+        self.open()
+        T_world_camera, angle = self._pose(self._index)
+        render = self._scene.render(self.config.intrinsics, T_world_camera)
+        depth = apply_sensor_model(render, self.config.sensor, self._rng)
+        timestamp = self.config.start_ns + int(round(self._index * 1e9 / self.config.fps))
+        frame = to_depth_frame(depth, self.config.intrinsics, self.config.sensor, T_world_camera, timestamp,
+                               self.config.sensor_id, angle)
+        self._index += 1
+        return frame
+
+    def close(self) -> None:
+        self._scene = None

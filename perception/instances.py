@@ -21,7 +21,7 @@ class ClusterConfig:
     existence_threshold: float = 0.5
     bandwidth_voxels: float = 2.0
     """MeanShift bandwidth in voxels: collapsed points of one cap lie within a few millimetres."""
-    eps_voxels: float = 2.0
+    eps_voxels: float = 1.6
     """DBSCAN neighbourhood in voxels (input points are about one voxel apart)."""
     min_points: int = 4
     """Clusters smaller than this are dropped (noise, slivers of caps seen edge-on)."""

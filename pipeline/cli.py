@@ -93,6 +93,12 @@ def cmd_synth(args: argparse.Namespace) -> int:
           f"per scene)  visibility: {config.visibility}  time: {elapsed:.1f} s  -> {out}")
     if rrd is not None:
         print(f"rerun recording: {rrd}")
+    if args.preview:
+        from pipeline.preview import render_bed_preview
+
+        preview = _writable_file(args.preview)
+        render_bed_preview(seeds[0], config, preview)
+        print(f"preview of the first scene: {preview}")
     return 0
 
 
@@ -241,6 +247,39 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_cameras(args: argparse.Namespace) -> int:
+    from capture.source import find_cameras
+
+    cameras = find_cameras()
+    if not cameras:
+        print("no RealSense or OAK camera attached (the virtual camera is always available: --camera virtual)")
+    for camera in cameras:
+        print(f"{camera.kind:<10} {camera.serial:<24} {camera.name}")
+    return 0
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    from capture.mcap_io import record
+    from capture.source import SourceError
+    from pipeline.sources import make_source
+
+    out = _writable_file(args.out)
+    if out.exists() and not args.overwrite:
+        raise CliError(f"{out} exists: pass --overwrite to replace it")
+    try:
+        source = make_source(args.camera, args.serial, args.seed, args.views)
+        with source:
+            summary = record(source, out, args.duration, progress=not args.quiet, overwrite=args.overwrite)
+    except SourceError as error:
+        kept = f"; the frames recorded so far are in {out}" if out.exists() else ""
+        raise CliError(f"{args.camera} camera: {error}{kept}") from None
+    except (ImportError, FileExistsError, ValueError) as error:
+        raise CliError(str(error)) from None
+    print(f"recorded {summary.frames} frames in {summary.seconds:.1f} s ({summary.stopped_by}) -> {out} "
+          f"({summary.bytes / 1e6:.1f} MB)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="mushroom-pose", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -257,6 +296,7 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--out", required=True, help="output folder")
     synth.add_argument("--rrd", help="also log the scenes to this Rerun recording")
     synth.add_argument("--no-ply", action="store_true", help="write only the .npz files")
+    synth.add_argument("--preview", help="also render the first bed to this PNG (shaded meshes, oblique view)")
     synth.add_argument("--quiet", action="store_true", help="no progress bar")
     synth.set_defaults(run=cmd_synth)
 
@@ -296,6 +336,21 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--scenes", type=_positive(int), help="only the first N scenes of each set")
     evaluate.add_argument("--quiet", action="store_true")
     evaluate.set_defaults(run=cmd_eval)
+
+    cameras = sub.add_parser("cameras", help="list attached RealSense and OAK cameras")
+    cameras.set_defaults(run=cmd_cameras)
+
+    rec = sub.add_parser("record", help="record a depth camera session to MCAP")
+    rec.add_argument("--camera", choices=["realsense", "oak", "virtual"], required=True)
+    rec.add_argument("--serial", help="which camera (serial number or OAK MxId) when several are attached")
+    rec.add_argument("--out", required=True, help="the .mcap file to write")
+    rec.add_argument("--duration", type=_positive(float), help="seconds to record (default: until the "
+                     "source ends or Ctrl-C)")
+    rec.add_argument("--seed", type=_non_negative_int, default=0, help="virtual camera: which synthetic bed")
+    rec.add_argument("--views", type=_positive(int), default=18, help="virtual camera: turntable views")
+    rec.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    rec.add_argument("--quiet", action="store_true")
+    rec.set_defaults(run=cmd_record)
     return parser
 
 

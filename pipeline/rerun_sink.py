@@ -42,6 +42,16 @@ def rerun_stream(rrd: Path | None = None, spawn: bool = False, serve: bool = Fal
         tmp.replace(rrd)
 
 
+def default_blueprint(camera_ids: list[str] = ()) -> rr.BlueprintLike:
+    """3D view of the world, each camera's depth (and colour) in 2D, and per-stage latency over time."""
+    import rerun.blueprint as rrb
+
+    cameras = [rrb.Spatial2DView(origin=f"world/camera/{cid}", name=f"camera {cid}") for cid in camera_ids]
+    side = [*cameras, rrb.TimeSeriesView(origin="stats", name="latency and counts")]
+    return rrb.Blueprint(rrb.Horizontal(rrb.Spatial3DView(origin="world", name="bed"), rrb.Vertical(*side),
+                                        column_shares=[3, 2]), collapse_panels=True)
+
+
 def set_frame(rec: rr.RecordingStream, frame: int, capture_ns: int | None = None) -> None:
     """Put what follows on the ``frame`` timeline and, when known, the ``capture`` timeline."""
     rec.set_time("frame", sequence=frame)

@@ -1,0 +1,83 @@
+"""Perception speed per stage on val50 beds: voxelise, network, instances, pose, end to end; peak RSS.
+
+Medians over scenes with 2 torch threads, for the shipped model (or --model). The clustering
+baseline is scikit-learn MeanShift without bin seeding (every point a seed), timed in the same run
+on the same inputs. Targets: end to end <= 400 ms for a 0.5 m x 0.5 m bed (about 20 k voxels),
+pose <= 5 ms for 45 caps.
+Usage: python bench/perception.py [--model PATH] [--scenes N] [--visibility hpr|camera]
+"""
+import sys
+from pathlib import Path
+
+# bench/perception.py would shadow the perception package: take this folder off the import path
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
+
+
+import argparse
+import resource
+import time
+
+import numpy as np
+import torch
+from sklearn.cluster import MeanShift
+
+from perception.detect import DEFAULT_WEIGHTS, network_input
+from perception.instances import ClusterConfig, cluster
+from perception.model import LENGTH_UNIT
+from perception.pose import fit_caps
+from perception.sparse import SparseTensor
+from perception.synthetic.dataset import load_preset
+from perception.train import load_weights
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", type=Path, default=DEFAULT_WEIGHTS)
+    parser.add_argument("--scenes", type=int, default=20)
+    parser.add_argument("--visibility", default="hpr")
+    parser.add_argument("--baseline-scenes", type=int, default=5, help="scenes for the slow baseline clustering")
+    args = parser.parse_args()
+    torch.set_num_threads(2)
+    model, meta = load_weights(args.model)
+    voxel = model.config.voxel
+    scenes = load_preset("val50", args.visibility, progress=False, limit=args.scenes)
+    rows = {k: [] for k in ("voxels", "caps", "voxelise", "network", "instances", "pose", "total", "baseline")}
+    for index, scene in enumerate([scenes[0]] + scenes):
+        t0 = time.perf_counter()
+        coords, point_to_voxel, centroids = network_input(scene.points, voxel)
+        t1 = time.perf_counter()
+        with torch.no_grad():
+            out = model(SparseTensor(torch.ones(len(coords), 1), coords)).double()
+        existence = torch.sigmoid(out[:, 0]).numpy()
+        centers = (centroids + out[:, 1:4] * LENGTH_UNIT).numpy()
+        orientation = out[:, 4].clamp(0, 1).numpy()
+        t2 = time.perf_counter()
+        labels = cluster(centroids.numpy(), centers, existence, voxel, ClusterConfig())
+        t3 = time.perf_counter()
+        fit = fit_caps(centroids.numpy(), centers, orientation, existence, labels)
+        t4 = time.perf_counter()
+        if index == 0:
+            continue
+        for key, value in (("voxels", len(coords)), ("caps", len(fit.centers)), ("voxelise", t1 - t0),
+                           ("network", t2 - t1), ("instances", t3 - t2), ("pose", t4 - t3), ("total", t4 - t0)):
+            rows[key].append(value)
+        if index <= args.baseline_scenes:
+            candidates = centers[existence > 0.5]
+            t5 = time.perf_counter()
+            MeanShift(bandwidth=ClusterConfig().bandwidth_voxels * voxel).fit(candidates)
+            rows["baseline"].append(time.perf_counter() - t5)
+    ms = {k: 1000 * np.median(v) for k, v in rows.items() if k not in ("voxels", "caps")}
+    print(f"model {args.model.name} (voxel {1000 * voxel:.1f} mm), {len(rows['total'])} val50 scenes "
+          f"({args.visibility}), 2 threads; median voxels {np.median(rows['voxels']):.0f}, "
+          f"caps {np.median(rows['caps']):.0f} (max {max(rows['caps'])})")
+    for key in ("voxelise", "network", "instances", "pose", "total"):
+        print(f"  {key:<10} {ms[key]:8.1f} ms")
+    print(f"  MeanShift without bin seeding (baseline clustering): {ms['baseline']:.1f} ms -> ours is "
+          f"{ms['baseline'] / ms['instances']:.1f}x faster (medians over {len(rows['baseline'])} scenes)")
+    print(f"  pose for the scene with most caps ({max(rows['caps'])}): "
+          f"{1000 * rows['pose'][int(np.argmax(rows['caps']))]:.2f} ms")
+    print(f"peak RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,471 @@
+"""Depth frames to and from MCAP (DESIGN.md section 5): record any Source, replay a recording as a Source.
+
+Layout of a recording, per sensor ``<id>`` (all messages of one frame share log_time = its timestamp_ns):
+
+- ``/camera/<id>/depth``        foxglove.RawImage "16UC1", the raw little-endian uint16 depth units
+- ``/camera/<id>/color``        foxglove.RawImage "rgb8", when the frame has colour
+- ``/camera/<id>/calibration``  foxglove.CameraCalibration (K, P, plumb_bob with zero D)
+- ``/tf``                       foxglove.FrameTransforms world -> camera/<id>, when the pose is known
+- ``/camera/<id>/meta``         JSON ``{"timestamp_ns", "depth_scale", "turntable_angle", "T_world_camera",
+                                "has_color"}``
+
+The foxglove schemas have no field for a depth scale or a turntable angle, and a pose stored as a
+quaternion does not come back bit-exact, so the meta channel carries what replay needs exactly
+(JSON floats round-trip exactly); /tf is there for viewers. The meta message also says whether a
+colour image belongs to the frame, so the reader knows when a frame is complete.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import sys
+import threading
+import time
+import warnings
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import foxglove
+import numpy as np
+from foxglove.channels import (CameraCalibrationChannel, FrameTransformsChannel, PointCloudChannel,
+                               RawImageChannel)
+from foxglove.mcap import MCAPCompression, MCAPWriteOptions
+from foxglove.messages import (CameraCalibration, FrameTransform, FrameTransforms, PackedElementField,
+                               PackedElementFieldNumericType, PointCloud, Pose, Quaternion, RawImage,
+                               Timestamp, Vector3)
+from mcap.exceptions import McapError
+from mcap.reader import SeekingReader
+from mcap.records import Channel, Message, Schema
+from mcap.stream_reader import StreamReader
+from mcap_protobuf.decoder import DecoderFactory
+
+from capture.frames import CameraIntrinsics, DepthFrame
+from capture.source import Source, SourceError
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+_CAMERA_TOPIC = re.compile(r"^/camera/(?P<sensor>.+)/(?P<kind>depth|color|calibration|meta)$")
+_COMPRESSION = {"zstd": MCAPCompression.Zstd, "lz4": MCAPCompression.Lz4, "none": None, None: None}
+_META_SCHEMA = {
+    "title": "mushroom_pose.DepthFrameMeta",
+    "type": "object",
+    "properties": {
+        "timestamp_ns": {"type": "integer"},
+        "depth_scale": {"type": "number", "description": "metres per depth unit"},
+        "turntable_angle": {"type": ["number", "null"], "description": "radians"},
+        "T_world_camera": {"type": ["array", "null"], "items": {"type": "number"},
+                           "description": "row-major 4x4, exact"},
+        "has_color": {"type": "boolean"},
+    },
+    "required": ["timestamp_ns", "depth_scale", "turntable_angle", "T_world_camera", "has_color"],
+}
+
+
+class TruncatedRecordingWarning(UserWarning):
+    """A recording without its MCAP footer (the recorder was killed): replayed up to its last whole chunk."""
+
+
+def _timestamp(ns: int) -> Timestamp:
+    return Timestamp(ns // 1_000_000_000, ns % 1_000_000_000)
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, (np.ndarray, np.generic)):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
+
+
+@contextmanager
+def _signals_deferred() -> Iterator[None]:
+    """Hold SIGINT/SIGTERM until the block ends (then deliver them), so finalising cannot be cut short."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    previous = {sig: signal.signal(sig, lambda signum, _frame: caught.append(signum))
+                for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)
+        for sig in caught:
+            signal.raise_signal(sig)
+
+
+@dataclass
+class StopRequest:
+    """Set by ``graceful_stop`` when a stop signal arrived; recording loops check ``requested``."""
+
+    requested: bool = False
+    signal: str | None = None
+
+
+@contextmanager
+def graceful_stop(signals: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> Iterator[StopRequest]:
+    """The first SIGINT/SIGTERM sets ``stop.requested`` so the loop ends after the current frame;
+    a second one raises KeyboardInterrupt (for a source stuck in a blocking read). Signals the process
+    ignores stay ignored; outside the main thread nothing is installed. Previous handlers come back
+    on exit."""
+    stop = StopRequest()
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+
+    def handle(signum: int, _frame: Any) -> None:
+        if stop.requested:
+            raise KeyboardInterrupt
+        stop.requested, stop.signal = True, signal.Signals(signum).name
+
+    previous = {sig: signal.signal(sig, handle) for sig in signals if signal.getsignal(sig) is not signal.SIG_IGN}
+    try:
+        yield stop
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)
+
+
+class McapRecorder:
+    """Writes DepthFrames (and JSON, point clouds) to an MCAP file with foxglove-sdk.
+
+    The file is written as ``<path>.partial`` and renamed to ``path`` by ``close()``, which always
+    finalises (summary and footer) first, also when leaving ``with`` on KeyboardInterrupt or any other
+    exception, and holds off SIGINT/SIGTERM while doing so. A process killed outright (SIGKILL, power
+    loss) leaves only the ``.partial`` file, which McapSource replays up to its last whole chunk.
+    """
+
+    def __init__(self, path: str | os.PathLike, compression: str | None = "zstd", *,
+                 chunk_size: int = 1 << 20, overwrite: bool = False) -> None:
+        """``compression``: "zstd", "lz4" or None; ``chunk_size``: uncompressed bytes per chunk, which is
+        also about how much a hard kill can lose."""
+        if compression not in _COMPRESSION:
+            raise ValueError(f"compression must be 'zstd', 'lz4' or None, got {compression!r}")
+        self.path = Path(path)
+        self.partial_path = self.path.with_name(self.path.name + ".partial")
+        if self.path.exists() and not overwrite:
+            raise FileExistsError(f"{self.path} exists (pass overwrite=True to replace it)")
+        if self.partial_path.exists():
+            raise FileExistsError(f"{self.partial_path} exists: an earlier recording was interrupted; "
+                                  f"McapSource can replay it, move or delete it first")
+        self.frames = 0
+        self._context = foxglove.Context()
+        options = MCAPWriteOptions(compression=_COMPRESSION[compression], chunk_size=chunk_size)
+        try:
+            self._writer = foxglove.open_mcap(self.partial_path, context=self._context, writer_options=options)
+        except OSError as error:
+            raise type(error)(f"cannot create {self.partial_path}: {error}") from None
+        self._channels: dict[str, Any] = {}
+        self._last_timestamp: dict[str, int] = {}
+        self._closed = False
+
+    def __enter__(self) -> "McapRecorder":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def _channel(self, topic: str, kind: type, **kwargs: Any) -> Any:
+        channel = self._channels.get(topic)
+        if channel is None:
+            if self._closed:
+                raise ValueError(f"{self.path}: the recorder is closed")
+            channel = self._channels[topic] = kind(topic, context=self._context, **kwargs)
+        elif not isinstance(channel, kind):
+            raise ValueError(f"{topic} already carries {type(channel).__name__} messages")
+        return channel
+
+    def write(self, frame: DepthFrame) -> None:
+        """Log one frame on its sensor's topics at log_time = ``frame.timestamp_ns``."""
+        sensor, t = frame.sensor_id, int(frame.timestamp_ns)
+        if t < 0:
+            raise ValueError(f"timestamp_ns must be >= 0 for MCAP, got {t}")
+        if self._last_timestamp.get(sensor, -1) >= t:
+            raise ValueError(f"sensor {sensor!r}: timestamp {t} ns does not follow {self._last_timestamp[sensor]} ns")
+        if frame.color is not None and (frame.color.dtype != np.uint8 or frame.color.ndim != 3
+                                        or frame.color.shape[2] != 3):
+            raise ValueError(f"colour must be HxWx3 uint8 (rgb8), got {frame.color.dtype} {frame.color.shape}")
+        k, stamp, frame_id = frame.intrinsics, _timestamp(t), f"camera/{sensor}"
+        prefix = f"/camera/{sensor}"
+        self._channel(f"{prefix}/depth", RawImageChannel).log(RawImage(
+            timestamp=stamp, frame_id=frame_id, width=k.width, height=k.height, encoding="16UC1",
+            step=k.width * 2, data=np.ascontiguousarray(frame.depth, "<u2").tobytes()), log_time=t)
+        if frame.color is not None:
+            self._channel(f"{prefix}/color", RawImageChannel).log(RawImage(
+                timestamp=stamp, frame_id=frame_id, width=k.width, height=k.height, encoding="rgb8",
+                step=k.width * 3, data=np.ascontiguousarray(frame.color).tobytes()), log_time=t)
+        self._channel(f"{prefix}/calibration", CameraCalibrationChannel).log(CameraCalibration(
+            timestamp=stamp, frame_id=frame_id, width=k.width, height=k.height, distortion_model="plumb_bob",
+            D=[0.0] * 5, K=[float(v) for v in k.matrix.ravel()], R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+            P=[float(k.fx), 0.0, float(k.cx), 0.0, 0.0, float(k.fy), float(k.cy), 0.0, 0.0, 0.0, 1.0, 0.0]),
+            log_time=t)
+        pose = None if frame.T_world_camera is None else np.asarray(frame.T_world_camera, np.float64)
+        if pose is not None:
+            from scipy.spatial.transform import Rotation
+
+            x, y, z, w = Rotation.from_matrix(pose[:3, :3]).as_quat()
+            self._channel("/tf", FrameTransformsChannel).log(FrameTransforms(transforms=[FrameTransform(
+                timestamp=stamp, parent_frame_id="world", child_frame_id=frame_id,
+                translation=Vector3(x=pose[0, 3], y=pose[1, 3], z=pose[2, 3]),
+                rotation=Quaternion(x=x, y=y, z=z, w=w))]), log_time=t)
+        meta = {"timestamp_ns": t, "depth_scale": float(frame.depth_scale),
+                "turntable_angle": None if frame.turntable_angle is None else float(frame.turntable_angle),
+                "T_world_camera": None if pose is None else pose.ravel().tolist(),
+                "has_color": frame.color is not None}
+        self._channel(f"{prefix}/meta", foxglove.Channel, schema=_META_SCHEMA).log(
+            json.dumps(meta).encode(), log_time=t)
+        self._last_timestamp[sensor] = t
+        self.frames += 1
+
+    def write_json(self, topic: str, obj: Any, log_time_ns: int, *, schema: dict | None = None) -> None:
+        """Log ``obj`` (numpy values allowed) on a JSON channel; ``schema`` is a JSON schema of an object."""
+        channel = self._channel(topic, foxglove.Channel, schema=schema or {"type": "object"})
+        channel.log(json.dumps(obj, default=_jsonable).encode(), log_time=int(log_time_ns))
+
+    def write_point_cloud(self, topic: str, points: np.ndarray, log_time_ns: int, frame_id: str = "world") -> None:
+        """Log points (N, 3) in metres as a foxglove.PointCloud with float32 fields x, y, z."""
+        points = np.asarray(points)
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise ValueError(f"points must be (N, 3), got {points.shape}")
+        f32 = PackedElementFieldNumericType.Float32
+        self._channel(topic, PointCloudChannel).log(PointCloud(
+            timestamp=_timestamp(int(log_time_ns)), frame_id=frame_id,
+            pose=Pose(position=Vector3(), orientation=Quaternion(w=1.0)), point_stride=12,
+            fields=[PackedElementField(name=name, offset=4 * i, type=f32) for i, name in enumerate("xyz")],
+            data=np.ascontiguousarray(points, "<f4").tobytes()), log_time=int(log_time_ns))
+
+    def close(self) -> None:
+        """Finalise the MCAP and move it to its final name; safe to call twice. If finalising fails
+        (disk full), the ``.partial`` file stays for McapSource to recover and the error propagates."""
+        if self._closed:
+            return
+        self._closed = True
+        with _signals_deferred():
+            for channel in self._channels.values():
+                channel.close()
+            self._writer.close()
+            os.replace(self.partial_path, self.path)
+
+
+@dataclass(frozen=True)
+class RecordingSummary:
+    """What ``record`` wrote: frames, file size, wall-clock seconds, and why it stopped."""
+
+    frames: int
+    bytes: int
+    seconds: float
+    path: Path | None = None
+    stopped_by: str = "end"
+    """Why recording stopped: end (source exhausted), duration, or the signal's name (SIGINT, SIGTERM)."""
+
+
+def record(source: Source, path: str | os.PathLike, duration_s: float | None = None, progress: bool = True, *,
+           compression: str | None = "zstd", overwrite: bool = False,
+           on_frame: Callable[[int, DepthFrame], None] | None = None) -> RecordingSummary:
+    """Pull frames from ``source`` into an MCAP until it ends, ``duration_s`` (wall clock) passes, or
+    SIGINT/SIGTERM arrives (see ``graceful_stop``). The file is finalised in every case, also when an
+    exception propagates. ``on_frame(frames_written, frame)`` runs after each frame is written. The
+    caller owns the source (opens/closes it)."""
+    from tqdm import tqdm
+
+    start = time.monotonic()
+    stopped_by = "end"
+    with graceful_stop() as stop, McapRecorder(path, compression, overwrite=overwrite) as recorder, \
+            tqdm(desc=f"recording {Path(path).name}", unit="frame", disable=not progress, file=sys.stderr) as bar:
+        while True:
+            if stop.requested:
+                stopped_by = stop.signal or "signal"
+                break
+            if duration_s is not None and time.monotonic() - start >= duration_s:
+                stopped_by = "duration"
+                break
+            frame = source.read()
+            if frame is None:
+                break
+            recorder.write(frame)
+            bar.update(1)
+            if on_frame is not None:
+                on_frame(recorder.frames, frame)
+    return RecordingSummary(recorder.frames, recorder.path.stat().st_size, time.monotonic() - start,
+                            recorder.path, stopped_by)
+
+
+class _ExactReads:
+    """A file whose reads fail instead of coming back short, so a cut record is never half-parsed."""
+
+    def __init__(self, file: Any) -> None:
+        self._file = file
+
+    def read(self, size: int) -> bytes:
+        data = self._file.read(size)
+        if len(data) < size:
+            raise EOFError(f"file ends inside a record ({len(data)} of {size} bytes)")
+        return data
+
+
+def _image(message: Any, dtype: str, channels: int) -> np.ndarray:
+    """The pixels of a foxglove.RawImage as an owned array (H, W) or (H, W, channels)."""
+    width, height, step = message.width, message.height, message.step
+    row_bytes = width * channels * np.dtype(dtype).itemsize
+    rows = np.frombuffer(message.data, np.uint8, count=height * step).reshape(height, step)[:, :row_bytes]
+    pixels = np.array(rows).view(dtype).astype(np.dtype(dtype).newbyteorder("="), copy=False)
+    return pixels.reshape(height, width) if channels == 1 else pixels.reshape(height, width, channels)
+
+
+class McapSource(Source):
+    """Replays the DepthFrames of an McapRecorder file in log-time order, bit-exact, all sensors interleaved.
+
+    A finalised file is read through its index (log-time order across chunks). A file without a
+    footer (recorder killed, disk full, power loss) is read front to back in file order, which is
+    log-time order for recordings of a time-ordered Source, up to its last whole record, with a
+    TruncatedRecordingWarning; frames missing a part at the cut are dropped.
+    """
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+        self.truncated = False
+        self.sensor_ids: list[str] = []
+        self._file: Any = None
+        self._frames: Iterator[DepthFrame] | None = None
+
+    def open(self) -> None:
+        if self._file is not None:
+            return
+        if not self.path.exists():
+            raise SourceError(f"{self.path} does not exist")
+        try:
+            file = open(self.path, "rb")
+        except OSError as error:
+            raise SourceError(f"cannot read {self.path}: {error.strerror}") from None
+        try:
+            self._frames = self._start(file)
+        except BaseException:
+            file.close()
+            raise
+        self._file = file
+
+    def _start(self, file: Any) -> Iterator[DepthFrame]:
+        head = file.read(len(MCAP_MAGIC))
+        if not head:
+            raise SourceError(f"{self.path} is empty, not an MCAP file")
+        if not MCAP_MAGIC.startswith(head):
+            raise SourceError(f"{self.path} is not an MCAP file")
+        file.seek(0, os.SEEK_END)
+        size = file.tell()
+        finalised = False
+        if size >= 2 * len(MCAP_MAGIC):
+            file.seek(size - len(MCAP_MAGIC))
+            if file.read(len(MCAP_MAGIC)) == MCAP_MAGIC:
+                try:
+                    file.seek(0)
+                    summary = SeekingReader(file).get_summary()
+                    finalised = True
+                except (McapError, EOFError, ValueError):
+                    pass
+        if not finalised:
+            self.truncated = True
+            warnings.warn(f"{self.path} has no valid MCAP footer (recording not finalised): replaying it up to "
+                          f"its last whole chunk", TruncatedRecordingWarning, stacklevel=3)
+            return self._assemble(self._stream(file))
+        if summary is None:
+            return self._assemble(self._stream(file))
+        topics = [c.topic for c in summary.channels.values() if _CAMERA_TOPIC.match(c.topic)]
+        self.sensor_ids = sorted({_CAMERA_TOPIC.match(t)["sensor"] for t in topics if t.endswith("/depth")})
+        if not self.sensor_ids:
+            raise SourceError(f"{self.path} has no depth topics (/camera/<id>/depth)")
+        missing = [s for s in self.sensor_ids if f"/camera/{s}/meta" not in topics]
+        if missing:
+            raise SourceError(f"{self.path} has /camera/{missing[0]}/depth but no /camera/{missing[0]}/meta "
+                              f"(depth_scale, pose): not written by McapRecorder")
+        file.seek(0)
+        return self._assemble(SeekingReader(file).iter_messages(topics, log_time_order=True))
+
+    def _stream(self, file: Any) -> Iterator[tuple[Schema | None, Channel, Message]]:
+        """Messages in file order, stopping quietly where the file is cut."""
+        file.seek(0)
+        schemas: dict[int, Schema] = {}
+        channels: dict[int, Channel] = {}
+        size = os.fstat(file.fileno()).st_size
+        records = StreamReader(_ExactReads(file), record_size_limit=size).records
+        while True:
+            try:
+                record = next(records)
+            except StopIteration:
+                return
+            except (McapError, EOFError, ValueError):
+                if not self.truncated:
+                    raise
+                return
+            if isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Channel):
+                channels[record.id] = record
+                match = _CAMERA_TOPIC.match(record.topic)
+                if match and match["kind"] == "depth" and match["sensor"] not in self.sensor_ids:
+                    self.sensor_ids.append(match["sensor"])
+            elif isinstance(record, Message) and record.channel_id in channels:
+                channel = channels[record.channel_id]
+                if _CAMERA_TOPIC.match(channel.topic):
+                    yield schemas.get(channel.schema_id), channel, record
+
+    def _assemble(self, messages: Iterator[tuple[Schema | None, Channel, Message]]) -> Iterator[DepthFrame]:
+        """Group each frame's messages (same sensor, same log_time) and yield it once complete."""
+        factory = DecoderFactory()
+        decoders: dict[int, Callable[[bytes], Any]] = {}
+        pending: dict[tuple[str, int], dict[str, Any]] = {}
+        for schema, channel, message in messages:
+            match = _CAMERA_TOPIC.match(channel.topic)
+            sensor, kind = match["sensor"], match["kind"]
+            if kind == "meta":
+                value = json.loads(message.data)
+            else:
+                if channel.id not in decoders:
+                    decoder = factory.decoder_for(channel.message_encoding, schema)
+                    if decoder is None:
+                        raise SourceError(f"{self.path}: {channel.topic} is {channel.message_encoding}, "
+                                          f"not foxglove protobuf")
+                    decoders[channel.id] = decoder
+                value = decoders[channel.id](message.data)
+            key = (sensor, message.log_time)
+            parts = pending.setdefault(key, {})
+            parts[kind] = value
+            meta = parts.get("meta")
+            if meta is not None and {"depth", "calibration"} <= parts.keys() and (
+                    "color" in parts or not meta["has_color"]):
+                del pending[key]
+                yield self._frame(sensor, parts)
+
+    def _frame(self, sensor: str, parts: dict[str, Any]) -> DepthFrame:
+        depth, calibration, meta = parts["depth"], parts["calibration"], parts["meta"]
+        if depth.encoding not in ("16UC1", "mono16"):
+            raise SourceError(f"{self.path}: /camera/{sensor}/depth is {depth.encoding}, expected 16UC1")
+        K = calibration.K
+        intrinsics = CameraIntrinsics(calibration.width, calibration.height, K[0], K[4], K[2], K[5])
+        color = None
+        if "color" in parts:
+            if parts["color"].encoding != "rgb8":
+                raise SourceError(f"{self.path}: /camera/{sensor}/color is {parts['color'].encoding}, expected rgb8")
+            color = _image(parts["color"], "u1", 3)
+        pose = meta["T_world_camera"]
+        return DepthFrame(_image(depth, "<u2", 1), meta["depth_scale"], intrinsics, meta["timestamp_ns"], sensor,
+                          color, None if pose is None else np.array(pose, np.float64).reshape(4, 4),
+                          meta["turntable_angle"])
+
+    def read(self) -> DepthFrame | None:
+        self.open()
+        try:
+            return next(self._frames)
+        except StopIteration:
+            self._file.close()
+            self._frames = iter(())
+            return None
+        except (McapError, EOFError, ValueError) as error:
+            raise SourceError(f"{self.path} is damaged: {error}") from None
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+        self._file, self._frames = None, None

@@ -1,0 +1,64 @@
+"""One way to get frames from anything: the ``Source`` interface, its configs, and discovery.
+
+Modelled on LeRobot's camera drivers: a config dataclass per kind, a small abstract class with
+open / read / close (and iteration, and ``with``), and ``find_cameras()`` to list what is attached.
+RealSense, OAK, the virtual camera and MCAP replay all yield the same ``DepthFrame``.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass
+from typing import Iterator
+
+from capture.frames import DepthFrame
+
+
+class SourceError(RuntimeError):
+    """A source could not be opened or stopped delivering (unplugged camera, unreadable file)."""
+
+
+class Source(abc.ABC):
+    """Frames in time order. ``read()`` returns None once the stream has ended."""
+
+    def open(self) -> None:
+        """Acquire the device or file; called by ``with`` and by the first ``read``."""
+
+    @abc.abstractmethod
+    def read(self) -> DepthFrame | None:
+        ...
+
+    def close(self) -> None:
+        """Release the device or file; safe to call twice."""
+
+    def __iter__(self) -> Iterator[DepthFrame]:
+        while (frame := self.read()) is not None:
+            yield frame
+
+    def __enter__(self) -> "Source":
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+@dataclass(frozen=True)
+class CameraInfo:
+    """One attached camera, as ``mushroom-pose cameras`` lists it."""
+
+    kind: str
+    serial: str
+    name: str
+
+
+def find_cameras() -> list[CameraInfo]:
+    """Every attached RealSense and OAK camera (an empty list when none, or their library is absent)."""
+    found: list[CameraInfo] = []
+    for module_name in ("capture.realsense", "capture.oak"):
+        try:
+            module = __import__(module_name, fromlist=["find_cameras"])
+        except ImportError:
+            continue
+        found.extend(module.find_cameras())
+    return found

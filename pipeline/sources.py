@@ -1,0 +1,50 @@
+"""Building a frame source from CLI choices; the virtual camera gets a synthetic bed from perception."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from capture.source import Source
+
+CAMERAS = ("realsense", "oak", "virtual")
+
+
+@dataclass(frozen=True)
+class VirtualBedRig:
+    """A synthetic bed under a virtual D405 on a turntable: the default scene of demo, record and tests."""
+
+    seed: int = 0
+    views: int = 18
+    radius: float = 0.22
+    """Camera distance from the turntable axis, metres."""
+    height: float = 0.42
+    """Camera height above the bed, metres."""
+    fps: float = 15.0
+
+
+def virtual_bed_source(rig: VirtualBedRig = VirtualBedRig(), sensor_id: str = "virtual"):
+    """The source and the bed it looks at (meshes and true caps stay with the caller, for evaluation)."""
+    from capture.virtual import VirtualCameraConfig, VirtualSource, circle_rig
+    from perception.synthetic.scene import SceneConfig, build_bed
+
+    bed = build_bed(np.random.default_rng(rig.seed), SceneConfig())
+    config = VirtualCameraConfig(turntable=circle_rig(np.zeros(3), rig.radius, rig.height), views=rig.views,
+                                 fps=rig.fps, seed=rig.seed, sensor_id=sensor_id)
+    return VirtualSource(bed.vertices, bed.triangles, config), bed
+
+
+def make_source(camera: str, serial: str | None = None, seed: int = 0, views: int = 18) -> Source:
+    """A source for ``mushroom-pose record`` / ``live``: realsense, oak or virtual."""
+    if camera == "virtual":
+        return virtual_bed_source(VirtualBedRig(seed=seed, views=views))[0]
+    if camera == "realsense":
+        from capture.realsense import RealSenseConfig, RealSenseSource
+
+        return RealSenseSource(RealSenseConfig(serial=serial))
+    if camera == "oak":
+        from capture.oak import OakConfig, OakSource
+
+        return OakSource(OakConfig(mxid=serial))
+    raise ValueError(f"unknown camera {camera!r}; choose one of {', '.join(CAMERAS)}")
