@@ -53,50 +53,50 @@ class MeshScene:
         self._scene = o3d.t.geometry.RaycastingScene(nthreads=threads)
         self._scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),
                                   o3d.core.Tensor(np.ascontiguousarray(triangles, np.uint32)))
-        self._ray_cache: dict[CameraIntrinsics, np.ndarray] = {}
+        self._ray_cache: dict[CameraIntrinsics, tuple[np.ndarray, np.ndarray]] = {}
 
-    def _camera_rays(self, intrinsics: CameraIntrinsics) -> np.ndarray:
-        """Ray directions in the camera frame with unit z, so the hit distance is the depth."""
+    def _camera_rays(self, intrinsics: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
+        """Ray directions (float32) in the camera frame with unit z, so the hit distance is the depth,
+        and the inverse length of each."""
         if intrinsics not in self._ray_cache:
-            u, v = np.meshgrid(np.arange(intrinsics.width), np.arange(intrinsics.height))
-            self._ray_cache[intrinsics] = np.stack(
-                [(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy,
-                 np.ones(u.shape)], -1).reshape(-1, 3)
+            u, v = np.meshgrid(np.arange(intrinsics.width, dtype=np.float32),
+                               np.arange(intrinsics.height, dtype=np.float32))
+            directions = np.stack([(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy,
+                                   np.ones_like(u)], -1).reshape(-1, 3).astype(np.float32)
+            self._ray_cache[intrinsics] = (directions, 1.0 / np.linalg.norm(directions, axis=1))
         return self._ray_cache[intrinsics]
 
     def render(self, intrinsics: CameraIntrinsics, T_world_camera: np.ndarray) -> Render:
-        directions = self._camera_rays(intrinsics) @ T_world_camera[:3, :3].T
+        directions, inverse_length = self._camera_rays(intrinsics)
         rays = np.empty((len(directions), 6), np.float32)
         rays[:, :3] = T_world_camera[:3, 3]
-        rays[:, 3:] = directions
-        hit = self._scene.cast_rays(o3d.core.Tensor(rays), nthreads=self._threads)
+        np.matmul(directions, T_world_camera[:3, :3].T.astype(np.float32), out=rays[:, 3:])
+        hit = self._scene.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=self._threads)
         depth = hit["t_hit"].numpy()
         missed = ~np.isfinite(depth)
         depth[missed] = 0.0
         triangle_ids = hit["primitive_ids"].numpy().astype(np.int64)
         triangle_ids[missed] = -1
         normals = hit["primitive_normals"].numpy()
-        cos_incidence = np.abs(np.einsum("ij,ij->i", normals, directions)) / np.linalg.norm(directions, axis=1)
+        cos_incidence = np.abs(np.einsum("ij,ij->i", normals, rays[:, 3:])) * inverse_length
         shape = (intrinsics.height, intrinsics.width)
-        return Render(depth.reshape(shape), triangle_ids.reshape(shape),
-                      cos_incidence.astype(np.float32).reshape(shape))
+        return Render(depth.reshape(shape), triangle_ids.reshape(shape), cos_incidence.reshape(shape))
 
 
 def apply_sensor_model(render: Render, sensor: SensorModel, rng: np.random.Generator) -> np.ndarray:
     """Measured depth in metres (0 = invalid): range noise, grazing and edge holes, dropout, quantisation."""
-    depth = render.depth.astype(np.float64)
+    depth = render.depth.astype(np.float32, copy=False)
+    grazing_cos = np.float32(np.cos(np.radians(sensor.grazing_deg)))
+    keep_probability = np.minimum(render.cos_incidence / grazing_cos, 1.0) ** 2 * np.float32(1.0 - sensor.dropout)
     valid = (depth >= sensor.min_depth) & (depth <= sensor.max_depth)
-    grazing_cos = np.cos(np.radians(sensor.grazing_deg))
-    keep_probability = np.clip(render.cos_incidence / grazing_cos, 0.0, 1.0) ** 2
-    valid &= rng.random(depth.shape) < keep_probability
-    valid &= rng.random(depth.shape) >= sensor.dropout
-    hits = np.where(depth > 0, depth, np.inf)
+    valid &= rng.random(depth.shape, dtype=np.float32) < keep_probability
+    hits = np.where(depth > 0, depth, np.float32(np.inf))
     padded = np.pad(hits, 1, constant_values=np.inf)
     nearest_neighbour = np.minimum.reduce([padded[1:-1, :-2], padded[1:-1, 2:], padded[:-2, 1:-1], padded[2:, 1:-1]])
     valid &= ~(depth - nearest_neighbour > sensor.edge_jump)
-    noisy = depth + rng.standard_normal(depth.shape) * sensor.noise_at_1m * depth ** 2
-    quantised = np.round(noisy / sensor.depth_scale) * sensor.depth_scale
-    return np.where(valid, quantised, 0.0).astype(np.float32)
+    noisy = depth + rng.standard_normal(depth.shape, dtype=np.float32) * np.float32(sensor.noise_at_1m) * depth**2
+    quantised = np.round(noisy / np.float32(sensor.depth_scale)) * np.float32(sensor.depth_scale)
+    return np.where(valid, quantised, np.float32(0.0))
 
 
 def to_depth_frame(depth_m: np.ndarray, intrinsics: CameraIntrinsics, sensor: SensorModel,

@@ -29,3 +29,46 @@ def test_record_refuses_unknown_camera_and_existing_file(tmp_path):
     existing.write_bytes(b"keep me")
     one_line_error(run("record", "--camera", "virtual", "--out", existing), "--overwrite")
     assert existing.read_bytes() == b"keep me"
+
+
+class UnpluggedAfter:
+    """A camera that delivers a few frames and is then pulled out."""
+
+    def __init__(self, frames):
+        self.frames = list(frames)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return None
+
+    def read(self):
+        from capture.source import SourceError
+
+        if not self.frames:
+            raise SourceError("no frames for 5 s: the camera was unplugged")
+        return self.frames.pop(0)
+
+
+def test_unplugged_camera_keeps_the_recording_and_says_so(tmp_path, monkeypatch):
+    import pipeline.sources
+
+    frames = list(virtual_bed_source(VirtualBedRig(seed=1, views=3))[0])
+    monkeypatch.setattr(pipeline.sources, "make_source", lambda *a, **k: UnpluggedAfter(frames))
+    out = tmp_path / "cut.mcap"
+    one_line_error(run("record", "--camera", "realsense", "--out", out, "--quiet"), "unplugged")
+    with McapSource(out) as replay:
+        kept = list(replay)
+    assert len(kept) == 3
+    np.testing.assert_array_equal(kept[-1].depth, frames[-1].depth)
+
+
+def test_depth_and_colour_of_different_sizes_are_refused():
+    import pytest
+
+    from capture.frames import CameraIntrinsics, DepthFrame
+
+    with pytest.raises(ValueError, match="align them first"):
+        DepthFrame(np.zeros((48, 64), np.uint16), 1e-3, CameraIntrinsics(64, 48, 50, 50, 32, 24),
+                   color=np.zeros((24, 32, 3), np.uint8))
