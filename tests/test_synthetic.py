@@ -141,6 +141,13 @@ def test_scene_round_trips_through_npz(tmp_path):
     for name in ("points", "instance", "centers", "scales", "orientation"):
         np.testing.assert_array_equal(getattr(scene, name), getattr(loaded, name))
     assert loaded.seed == scene.seed and loaded.terrain == scene.terrain
+    with np.load(tmp_path / "s.npz") as raw:
+        corners = raw["box_corners"]
+    # the top face of each box is s_z above the cap base along the cap axis
+    axis = scene.rotations[:, :, 2]
+    heights = np.einsum("kvd,kd->kv", corners - scene.centers[:, None], axis)
+    np.testing.assert_allclose(heights.max(1), scene.scales[:, 2], atol=1e-9)
+    np.testing.assert_allclose(heights.min(1), 0.0, atol=1e-9)
 
 
 def test_presets_have_fixed_distinct_seeds_and_are_cached(tmp_path, monkeypatch):

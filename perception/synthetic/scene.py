@@ -14,7 +14,7 @@ import open3d as o3d
 
 from capture.frames import CameraIntrinsics, backproject, look_at, transform_points, voxel_representatives
 from capture.virtual import MeshScene, SensorModel, apply_sensor_model
-from perception.cap import CAP_HEIGHT_RATIO, CAP_RADIUS_AT_UNIT_SCALE, cap_rotation
+from perception.cap import CAP_HEIGHT_RATIO, CAP_RADIUS_AT_UNIT_SCALE, cap_box, cap_rotation
 from perception.encoding import EncodingTargets, encode
 from perception.synthetic.template import RIM_RATIO, STEM_LENGTH_RATIO, STEM_RADIUS_RATIO, mushroom_template
 from perception.synthetic.terrain import (TERRAINS, Distractor, deform_along_normals, deform_heightfield_mesh,
@@ -110,8 +110,15 @@ class SyntheticScene:
         """True cap radius s of each mushroom: the mean of its two horizontal semi-axes."""
         return self.scales[:, :2].mean(1)
 
+    @property
+    def box_corners(self) -> np.ndarray:
+        """(K, 8, 3) corners of each cap's oriented box (``perception.cap.cap_box``), bed frame."""
+        return np.array([cap_box(c, r, s).vertices() for c, r, s in zip(self.centers, self.rotations, self.scales)]
+                        ).reshape(-1, 8, 3)
+
     def save(self, path) -> None:
-        np.savez_compressed(path, **asdict(self), generator_version=GENERATOR_VERSION)
+        """Compressed .npz; ``box_corners`` is stored too, for readers outside this project."""
+        np.savez_compressed(path, **asdict(self), box_corners=self.box_corners, generator_version=GENERATOR_VERSION)
 
     @staticmethod
     def load(path) -> "SyntheticScene":
