@@ -1,0 +1,255 @@
+"""Multi-view fusion on a small virtual turntable session: refinement from a perturbed prior, TSDF
+surface accuracy against the true meshes, turntable and rig calibration, the rig file, streaming
+and bad input."""
+
+import dataclasses
+import time
+import types
+
+import numpy as np
+import open3d as o3d
+import pytest
+from scipy.spatial import cKDTree
+
+from capture.frames import CameraIntrinsics, frame_to_points, look_at, transform_points
+from capture.virtual import Turntable, VirtualCameraConfig, VirtualSource, circle_rig
+from fusion.cloud import FusedCloud, FusionConfig, Fuser, fuse, log_rerun
+from fusion.integrate import IntegrationConfig
+from fusion.registration import RegistrationConfig, pose_change, prepare_view, refine_poses
+from fusion.turntable import Rig, estimate_rig, estimate_turntable
+from pipeline.sources import VirtualBedRig, virtual_bed_source
+
+VIEWS = 6
+SMALL = CameraIntrinsics.realsense_d405(424, 240)
+TINY = CameraIntrinsics.realsense_d405(212, 120)
+TIMES: dict[str, float] = {}
+
+
+def one_line_error(excinfo) -> str:
+    message = str(excinfo.value)
+    assert message and "\n" not in message
+    return message
+
+
+@pytest.fixture(scope="module")
+def session():
+    """Six views of a synthetic bed, the truth, and a prior off by up to 3 deg in angle and 5 mm in axis."""
+    _, bed = virtual_bed_source(VirtualBedRig(views=VIEWS))
+    turntable = circle_rig(np.zeros(3), 0.22, 0.42)
+    config = VirtualCameraConfig(intrinsics=SMALL, turntable=turntable, views=VIEWS, seed=0)
+    frames = list(VirtualSource(bed.vertices, bed.triangles, config))
+    truth = np.stack([f.T_world_camera for f in frames])
+    rng = np.random.default_rng(7)
+    angle_error = np.radians(3.0) * rng.uniform(-1, 1, VIEWS)
+    angle_error[0] = 0.0  # the encoder's zero is the reference pose, which defines the world
+    shift = rng.normal(size=3)
+    shift *= 0.005 / np.linalg.norm(shift)
+    rig = Rig(Turntable(turntable.axis_point + shift, turntable.axis_direction, turntable.T_world_reference))
+    blind = [dataclasses.replace(f, T_world_camera=None, turntable_angle=f.turntable_angle + e)
+             for f, e in zip(frames, angle_error)]
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(bed.vertices.astype(np.float32)), o3d.core.Tensor(bed.triangles.astype(np.uint32)))
+    return types.SimpleNamespace(bed=bed, turntable=turntable, frames=frames, truth=truth, rig=rig, blind=blind,
+                                 scene=scene)
+
+
+def surface_rms(session, world_points: np.ndarray) -> float:
+    distance = session.scene.compute_distance(o3d.core.Tensor(np.ascontiguousarray(world_points, np.float32)))
+    return float(np.sqrt(np.mean(distance.numpy() ** 2)))
+
+
+@pytest.fixture(scope="module")
+def streamed(session):
+    """The blind frames through the streaming Fuser with the perturbed rig: one cloud per turn."""
+    fuser = Fuser(FusionConfig(), session.rig)
+    start = time.perf_counter()
+    outputs = [fuser.add(frame) for frame in session.blind]
+    TIMES["fuse 6 views (refine + TSDF)"] = time.perf_counter() - start
+    return outputs
+
+
+def test_refinement_recovers_true_poses(session, streamed):
+    assert all(out is None for out in streamed[:-1]) and isinstance(streamed[-1], FusedCloud)
+    fused = streamed[-1]
+    prior_rotation, prior_translation = pose_change(np.stack([session.rig.T_world_camera("virtual", f.turntable_angle)
+                                                              for f in session.blind]), session.truth)
+    rotation, translation = pose_change(fused.T_world_cameras, session.truth)
+    print(f"prior error: max {prior_rotation.max():.2f} deg {1000 * prior_translation.max():.1f} mm; "
+          f"refined: median {np.median(rotation):.3f} deg {1000 * np.median(translation):.2f} mm")
+    assert prior_rotation.max() > 1.0
+    assert np.median(rotation) <= 0.3 and np.median(translation) <= 0.0015
+    assert fused.flagged == ()
+    assert fused.frame_ids == tuple(f"virtual@{f.timestamp_ns}" for f in session.frames)
+
+
+def test_fused_surface_matches_the_meshes(session, streamed):
+    fused = streamed[-1]
+    rms = surface_rms(session, fused.world_points)
+    print(f"fused surface RMS {1000 * rms:.2f} mm over {len(fused)} points")
+    assert rms <= 0.002
+    assert fused.points.dtype == np.float32 and fused.points.shape == fused.normals.shape
+    assert fused.colors is None
+    up = np.degrees(np.arccos(fused.T_world_bed[2, 2]))
+    assert up < 5.0, "the bed frame's z must follow the bed normal"
+    assert abs(np.median(fused.points[:, 2])) < 0.01 and np.median(fused.normals[:, 2]) > 0.8
+    unrefined = fuse(session.blind, FusionConfig(refine=False), session.rig)
+    print(f"unrefined surface RMS {1000 * surface_rms(session, unrefined.world_points):.2f} mm")
+
+
+def test_implausible_refinement_is_flagged_and_the_prior_kept(session):
+    frames = session.blind[:2]
+    views = [prepare_view(f) for f in frames]
+    prior = np.stack([session.rig.T_world_camera("virtual", f.turntable_angle) for f in frames])
+    strict = refine_poses(views, prior, RegistrationConfig(max_rotation_deg=0.01, max_translation=1e-5))
+    assert strict.flagged.tolist() == [False, True] and "from the prior" in strict.reasons[1]
+    np.testing.assert_array_equal(strict.poses[1], prior[1])
+
+
+def check_axis(session, estimate: Turntable) -> None:
+    direction_error = np.degrees(np.arccos(np.clip(estimate.axis_direction @ session.turntable.axis_direction, -1, 1)))
+    offset = estimate.axis_point - session.turntable.axis_point
+    off_axis = np.linalg.norm(offset - (offset @ session.turntable.axis_direction) * session.turntable.axis_direction)
+    print(f"axis direction error {direction_error:.3f} deg, axis point off by {1000 * off_axis:.2f} mm")
+    assert direction_error <= 1.0 and off_axis <= 0.003
+
+
+def test_turntable_estimation_recovers_the_axis(session):
+    """Calibration of a turntable known only nominally: the perturbed prior's poses seed the chain."""
+    nominal = [dataclasses.replace(f, T_world_camera=session.rig.T_world_camera("virtual", f.turntable_angle),
+                                   turntable_angle=None) for f in session.blind]
+    start = time.perf_counter()
+    check_axis(session, estimate_turntable(nominal))
+    TIMES["turntable calibration from nominal poses"] = time.perf_counter() - start
+    with pytest.raises(ValueError) as excinfo:
+        estimate_turntable(nominal[:1])
+    assert "at least 3" in one_line_error(excinfo)
+
+
+@pytest.mark.slow
+def test_turntable_estimation_from_nothing(session):
+    """No poses at all: consecutive views are seeded by FPFH + RANSAC."""
+    unposed = [dataclasses.replace(f, T_world_camera=None, turntable_angle=None) for f in session.frames]
+    start = time.perf_counter()
+    check_axis(session, estimate_turntable(unposed, T_world_first=session.truth[0]))
+    TIMES["turntable calibration from nothing (FPFH chain)"] = time.perf_counter() - start
+
+
+def test_rig_extrinsics_between_two_cameras(session):
+    poses = {"a": look_at(np.array([0.1, -0.15, 0.4]), np.zeros(3)),
+             "b": look_at(np.array([-0.12, 0.1, 0.38]), np.array([0.02, 0.0, 0.0]))}
+    frames = [next(iter(VirtualSource(session.bed.vertices, session.bed.triangles,
+                                      VirtualCameraConfig(intrinsics=SMALL, poses=(T,), sensor_id=name, seed=3))))
+              for name, T in poses.items()]
+    rig = estimate_rig(frames)
+    rotation, translation = pose_change(rig.cameras["b"][None], (np.linalg.inv(poses["a"]) @ poses["b"])[None])
+    print(f"camera b extrinsics error {rotation[0]:.3f} deg {1000 * translation[0]:.2f} mm")
+    assert rig.turntable is None and rotation[0] < 0.3 and translation[0] < 0.002
+
+
+def test_rig_file_round_trip_and_bad_files(session, tmp_path):
+    rig = Rig(session.turntable, {"top": np.eye(4), "side": session.truth[1]}, angle_step=np.pi / 3)
+    path = tmp_path / "rig.json"
+    rig.save(path)
+    loaded = Rig.load(path)
+    np.testing.assert_allclose(loaded.T_world_camera("side", 0.7), rig.T_world_camera("side", 0.7))
+    assert loaded.angle_step == pytest.approx(np.pi / 3)
+    with pytest.raises(ValueError) as excinfo:
+        loaded.T_world_camera("front")
+    assert "not in the rig" in one_line_error(excinfo)
+    bad = {"garbage.json": b"\x89PNG\r\n\x1a\n\x00", "half.json": path.read_bytes()[:200],
+           "other.json": b'{"format": "something else"}',
+           "future.json": path.read_text().replace('"version": 1', '"version": 99').encode(),
+           "broken.json": path.read_text().replace('"axis_point": [', '"axis_point": [1, ').encode()}
+    for name, content in bad.items():
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(ValueError) as excinfo:
+            Rig.load(tmp_path / name)
+        assert name in one_line_error(excinfo)
+    with pytest.raises(ValueError, match="does not exist"):
+        Rig.load(tmp_path / "missing.json")
+
+
+def test_single_frame_gives_its_back_projected_cloud(session):
+    frame = session.frames[0]
+    fused = fuse([frame])
+    raw = transform_points(frame.T_world_camera, frame_to_points(frame))
+    distance, _ = cKDTree(raw).query(fused.world_points)
+    assert len(fused) > 1000 and distance.max() < 0.002 * np.sqrt(3)
+    assert abs(np.median(fused.points[:, 2])) < 0.01 and np.median(fused.normals[:, 2]) > 0.8
+    alone = fuse([dataclasses.replace(frame, T_world_camera=None)])
+    assert abs(len(alone) - len(fused)) < 0.05 * len(fused) and abs(np.median(alone.points[:, 2])) < 0.01
+
+
+def test_streaming_every_n_frames_and_fixed_step(session):
+    config = FusionConfig(refine=False, integration=IntegrationConfig(mode="merge", voxel=0.004))
+    fuser = Fuser(config, session.rig, every=2)
+    outputs = [fuser.add(f) for f in session.blind[:5]]
+    assert [o is not None for o in outputs] == [False, True, False, True, False] and fuser.pending == 1
+    assert len(fuser.flush().frame_ids) == 1 and fuser.flush() is None
+    stepped = Rig(session.turntable, angle_step=2 * np.pi / VIEWS)
+    unangled = [dataclasses.replace(f, turntable_angle=None) for f in session.blind]
+    turn = Fuser(config, stepped)
+    outputs = [turn.add(f) for f in unangled]
+    assert all(o is None for o in outputs[:-1]) and len(outputs[-1].frame_ids) == VIEWS
+    assert surface_rms(session, outputs[-1].world_points) < 0.003
+
+
+def test_log_rerun_writes_the_cloud(session, tmp_path):
+    import rerun as rr
+
+    from helpers import rrd_entity_rows
+
+    fused = fuse(session.frames[:1])
+    rec = rr.RecordingStream("test-fusion")
+    rec.save(tmp_path / "fusion.rrd")
+    log_rerun(rec, fused)
+    rec.flush()
+    rec.disconnect()
+    assert rrd_entity_rows(tmp_path / "fusion.rrd")["/world/fusion/cloud"] >= 1
+
+
+def test_bad_input_gives_clear_errors(session):
+    frames = session.frames[:2]
+    nan_pose = [frames[0], dataclasses.replace(frames[1], T_world_camera=np.full((4, 4), np.nan))]
+    with pytest.raises(ValueError) as excinfo:
+        fuse(nan_pose)
+    assert "frame 1" in one_line_error(excinfo) and "non-finite T_world_camera" in str(excinfo.value)
+    nan_angle = [session.blind[0], dataclasses.replace(session.blind[1], turntable_angle=float("nan"))]
+    with pytest.raises(ValueError, match="turntable_angle"):
+        fuse(nan_angle, rig=session.rig)
+    with pytest.raises(ValueError, match="no frames"):
+        fuse([])
+    no_intrinsics = types.SimpleNamespace(depth=frames[0].depth, intrinsics=None, sensor_id="x")
+    with pytest.raises(ValueError) as excinfo:
+        fuse([no_intrinsics])
+    assert "no intrinsics" in one_line_error(excinfo)
+
+
+def test_views_that_do_not_overlap(session):
+    """Two close-up views of opposite corners share nothing: refinement refuses with a clear error,
+    and fusion without refinement still works (the documented fallback)."""
+    poses = (look_at(np.array([-0.16, -0.16, 0.12]), np.array([-0.16, -0.16, 0.0]), np.array([0.0, 1.0, 0.0])),
+             look_at(np.array([0.16, 0.16, 0.12]), np.array([0.16, 0.16, 0.0]), np.array([0.0, 1.0, 0.0])))
+    frames = list(VirtualSource(session.bed.vertices, session.bed.triangles,
+                                VirtualCameraConfig(intrinsics=TINY, poses=poses, seed=1)))
+    with pytest.raises(ValueError) as excinfo:
+        fuse(frames)
+    assert "overlap" in one_line_error(excinfo)
+    fused = fuse(frames, FusionConfig(refine=False, integration=IntegrationConfig(min_views=1)))
+    assert len(fused) > 1000 and surface_rms(session, fused.world_points) < 0.003
+    third = next(iter(VirtualSource(session.bed.vertices, session.bed.triangles,
+                                    VirtualCameraConfig(intrinsics=TINY, poses=(poses[0] @ _turn_z(0.05),), seed=2,
+                                                        start_ns=10**9))))
+    mixed = fuse([frames[0], third, frames[1]], FusionConfig(integration=IntegrationConfig(min_views=1)))
+    assert mixed.flagged == (frames[1].sensor_id + f"@{frames[1].timestamp_ns}",)
+
+
+def _turn_z(angle: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:2, :2] = [[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]
+    return T
+
+
+def test_report_times():
+    for name, seconds in TIMES.items():
+        print(f"{name}: {seconds:.1f} s")
