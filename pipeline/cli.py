@@ -280,6 +280,33 @@ def cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from capture.mcap_io import McapSource
+    from capture.source import SourceError
+    from fusion.turntable import estimate_rig
+
+    out = _writable_file(args.out)
+    try:
+        with McapSource(args.session) as session:
+            frames = list(session)
+        if not frames:
+            raise CliError(f"{args.session} holds no complete depth frames")
+        started = time.perf_counter()
+        rig = estimate_rig(frames, reference=args.reference)
+    except (SourceError, ValueError) as error:
+        raise CliError(str(error)) from None
+    rig.save(out)
+    cameras = ", ".join(sorted(rig.cameras)) or frames[0].sensor_id
+    turntable = "no turntable (fewer than 3 frames of the reference camera)"
+    if rig.turntable is not None:
+        axis = rig.turntable.axis_direction
+        turntable = (f"turntable axis ({axis[0]:+.3f}, {axis[1]:+.3f}, {axis[2]:+.3f}) through "
+                     f"{np.round(1000 * np.asarray(rig.turntable.axis_point), 1).tolist()} mm, step "
+                     f"{np.degrees(rig.angle_step):.2f} deg")
+    print(f"rig from {len(frames)} frames of {cameras} in {time.perf_counter() - started:.1f} s: {turntable} -> {out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="mushroom-pose", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -351,6 +378,12 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     rec.add_argument("--quiet", action="store_true")
     rec.set_defaults(run=cmd_record)
+
+    calibrate = sub.add_parser("calibrate", help="turntable axis and camera extrinsics from a recorded turn")
+    calibrate.add_argument("--session", required=True, help="an MCAP recording of one full turn")
+    calibrate.add_argument("--out", required=True, help="the rig file (JSON) to write")
+    calibrate.add_argument("--reference", help="the camera whose frame defines the rig (default: the first)")
+    calibrate.set_defaults(run=cmd_calibrate)
     return parser
 
 

@@ -1,6 +1,7 @@
 """record: a virtual session round-trips bit-exact through MCAP; bad cameras fail in one line."""
 
 import numpy as np
+import pytest
 
 from capture.mcap_io import McapSource
 from pipeline.sources import VirtualBedRig, virtual_bed_source
@@ -65,10 +66,30 @@ def test_unplugged_camera_keeps_the_recording_and_says_so(tmp_path, monkeypatch)
 
 
 def test_depth_and_colour_of_different_sizes_are_refused():
-    import pytest
-
     from capture.frames import CameraIntrinsics, DepthFrame
 
     with pytest.raises(ValueError, match="align them first"):
         DepthFrame(np.zeros((48, 64), np.uint16), 1e-3, CameraIntrinsics(64, 48, 50, 50, 32, 24),
                    color=np.zeros((24, 32, 3), np.uint8))
+
+
+@pytest.mark.slow
+def test_calibrate_recovers_the_virtual_turntable(tmp_path):
+    from fusion.turntable import Rig
+
+    session = tmp_path / "turn.mcap"
+    assert run("record", "--camera", "virtual", "--views", "8", "--out", session, "--quiet").returncode == 0
+    result = run("calibrate", "--session", session, "--out", tmp_path / "rig.json")
+    assert result.returncode == 0, result.stderr
+    rig = Rig.load(tmp_path / "rig.json")
+    # the virtual rig turns about +z through the bed centre (pipeline.sources.VirtualBedRig)
+    axis = np.asarray(rig.turntable.axis_direction) * np.sign(rig.turntable.axis_direction[2])
+    assert np.degrees(np.arccos(min(1.0, axis[2]))) < 1.0
+    assert np.linalg.norm(np.asarray(rig.turntable.axis_point)[:2]) < 0.005
+    assert abs(np.degrees(rig.angle_step) - 45.0) < 1.0
+
+
+def test_calibrate_rejects_a_file_that_is_not_mcap(tmp_path):
+    bogus = tmp_path / "notes.mcap"
+    bogus.write_text("hello")
+    one_line_error(run("calibrate", "--session", bogus, "--out", tmp_path / "rig.json"), "not an MCAP file")
