@@ -162,3 +162,14 @@ def test_presets_have_fixed_distinct_seeds_and_are_cached(tmp_path, monkeypatch)
     second = load_preset("tiny", progress=False)
     assert [f.stat().st_mtime_ns for f in files] == stamp
     np.testing.assert_array_equal(first[1].points, second[1].points)
+
+
+def test_voxel_representatives_keep_the_first_point_of_every_voxel():
+    from capture.frames import voxel_representatives
+
+    rng = np.random.default_rng(0)
+    for count, spread in ((7, 0.01), (5000, 0.5), (3000, 40.0)):
+        points = rng.uniform(-spread, spread, (count, 3))
+        keys = np.floor(points / 0.005).astype(np.int64)
+        _, first = np.unique(keys, axis=0, return_index=True)
+        np.testing.assert_array_equal(voxel_representatives(points, 0.005), np.sort(first))
