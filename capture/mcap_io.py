@@ -469,3 +469,35 @@ class McapSource(Source):
         if self._file is not None:
             self._file.close()
         self._file, self._frames = None, None
+
+
+FUSED_CLOUD_TOPIC = "/fusion/cloud"
+
+
+def read_point_cloud(path: str | os.PathLike, topic: str = FUSED_CLOUD_TOPIC) -> tuple[np.ndarray, str]:
+    """The last foxglove.PointCloud on ``topic`` (float32 x, y, z fields) as (N, 3) float64 and its frame id.
+
+    Raises SourceError with a one-line reason when the file is not MCAP or holds no such cloud.
+    """
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    path = Path(path)
+    if not path.is_file():
+        raise SourceError(f"{path} does not exist")
+    last = None
+    try:
+        with open(path, "rb") as file:
+            reader = make_reader(file, decoder_factories=[DecoderFactory()])
+            for _, _, _, message in reader.iter_decoded_messages(topics=[topic]):
+                last = message
+    except (McapError, ValueError, EOFError) as error:
+        raise SourceError(f"{path} is not a readable MCAP file ({type(error).__name__})") from None
+    if last is None:
+        raise SourceError(f"{path} has no point cloud on {topic}")
+    offsets = {f.name: f.offset for f in last.fields}
+    if not {"x", "y", "z"} <= set(offsets):
+        raise SourceError(f"{path}: the cloud on {topic} has no x, y, z fields")
+    raw = np.frombuffer(last.data, np.uint8).reshape(-1, last.point_stride)
+    points = np.stack([raw[:, offsets[a]:offsets[a] + 4].copy().view("<f4")[:, 0] for a in "xyz"], 1)
+    return points.astype(np.float64), last.frame_id

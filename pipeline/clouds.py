@@ -1,4 +1,4 @@
-"""Reading the point clouds users hand to ``detect``: .ply, .pcd, our .npz scenes (and their checks)."""
+"""Reading the point clouds users hand to ``detect``: .ply, .pcd, our .npz scenes, fused clouds in MCAP."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-CLOUD_SUFFIXES = (".ply", ".pcd", ".npz")
+CLOUD_SUFFIXES = (".ply", ".pcd", ".npz", ".mcap")
 MILLIMETRE_EXTENT = 20.0
 """A bed is under a few metres across: a cloud spanning more than this many units is in millimetres."""
 
@@ -35,6 +35,15 @@ def load_cloud(path: Path) -> LoadedCloud:
         except Exception as error:
             raise ValueError(f"{path} is not a mushroom-pose scene (.npz with 'points'): {type(error).__name__}") from None
         in_bed = True
+    elif suffix == ".mcap":
+        from capture.mcap_io import read_point_cloud
+        from capture.source import SourceError
+
+        try:
+            points, _ = read_point_cloud(path)
+        except SourceError as error:
+            raise ValueError(str(error)) from None
+        in_bed = False
     elif suffix in (".ply", ".pcd"):
         import open3d as o3d
 

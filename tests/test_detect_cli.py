@@ -112,6 +112,23 @@ def test_detect_bad_input(tmp_path, weights, case, fragment):
     assert out.read_text() == "previous result"
 
 
+def test_fused_clouds_are_read_from_mcap(tmp_path, scene_ply, weights):
+    from capture.mcap_io import McapRecorder
+
+    _, scene = scene_ply
+    with McapRecorder(tmp_path / "fused.mcap") as recorder:
+        recorder.write_point_cloud("/fusion/cloud", np.zeros((10, 3), np.float32), 1)
+        recorder.write_point_cloud("/fusion/cloud", scene.points, 2)
+    cloud = load_cloud(tmp_path / "fused.mcap")
+    np.testing.assert_array_equal(cloud.points, scene.points.astype(np.float32).astype(np.float64))
+    result = run("detect", tmp_path / "fused.mcap", "--model", weights, "--out", tmp_path / "d.json")
+    assert result.returncode == 0, result.stderr
+    with McapRecorder(tmp_path / "empty.mcap") as recorder:
+        recorder.write_json("/other", {"a": 1}, 1)
+    one_line_error(run("detect", tmp_path / "empty.mcap", "--model", weights, "--out", tmp_path / "e.json"),
+                   "no point cloud on /fusion/cloud")
+
+
 def test_millimetre_clouds_are_detected_and_converted(tmp_path, scene_ply):
     _, scene = scene_ply
     path = write_ply(tmp_path / "mm.ply", scene.points * 1000)
