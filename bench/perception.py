@@ -23,7 +23,7 @@ from sklearn.cluster import MeanShift
 
 from perception.detect import DEFAULT_WEIGHTS, network_input
 from perception.instances import ClusterConfig, cluster
-from perception.model import LENGTH_UNIT
+from perception.model import LENGTH_UNIT, voxel_features
 from perception.pose import fit_caps
 from perception.sparse import SparseTensor
 from perception.synthetic.dataset import load_preset
@@ -47,7 +47,8 @@ def main() -> None:
         coords, point_to_voxel, centroids = network_input(scene.points, voxel)
         t1 = time.perf_counter()
         with torch.no_grad():
-            out = model(SparseTensor(torch.ones(len(coords), 1), coords)).double()
+            features = torch.from_numpy(voxel_features(model.config, centroids.numpy()))
+            out = model(SparseTensor(features, coords)).double()
         existence = torch.sigmoid(out[:, 0]).numpy()
         centers = (centroids + out[:, 1:4] * LENGTH_UNIT).numpy()
         orientation = out[:, 4].clamp(0, 1).numpy()

@@ -10,7 +10,7 @@ import torch
 
 from perception.cap import Mushroom
 from perception.instances import ClusterConfig, cluster
-from perception.model import LENGTH_UNIT, MushroomNet
+from perception.model import LENGTH_UNIT, MushroomNet, voxel_features
 from perception.pose import CapFit, fit_caps
 from perception.sparse import SparseTensor, voxelize
 
@@ -54,7 +54,8 @@ def predict(model: MushroomNet, points: np.ndarray) -> VoxelPrediction:
     device = next(model.parameters()).device
     coords, point_to_voxel, centroids = network_input(points, model.config.voxel, device)
     model.eval()
-    out = model(SparseTensor(torch.ones(len(coords), 1, device=device), coords)).double().cpu()
+    features = torch.from_numpy(voxel_features(model.config, centroids.numpy())).to(device)
+    out = model(SparseTensor(features, coords)).double().cpu()
     existence = torch.sigmoid(out[:, 0]).numpy()
     centers = (centroids + out[:, 1:4] * LENGTH_UNIT).numpy()
     orientation = out[:, 4].clamp(0.0, 1.0).numpy()

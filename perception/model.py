@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -31,6 +32,14 @@ class NetworkConfig:
     dropout: float = 0.1
     voxel: float = 0.0045
     """Voxel edge in metres."""
+    normals: bool = False
+    """Besides the constant 1, give each voxel the unit normal of the surface through the voxel
+    centroids (oriented to +z, the bed normal): tilt shows in normals long before it shows in the
+    occupancy of 4.5 mm voxels."""
+
+    @property
+    def in_channels(self) -> int:
+        return 4 if self.normals else 1
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -46,7 +55,24 @@ class NetworkConfig:
 PRESETS = {
     "fcgf": NetworkConfig(),
     "slim": NetworkConfig(channels=(32, 48, 64, 96), up_channels=(48, 48, 64, 64), first_kernel=3),
+    "slim-n": NetworkConfig(channels=(32, 48, 64, 96), up_channels=(48, 48, 64, 64), first_kernel=3, normals=True),
 }
+
+
+def voxel_features(config: NetworkConfig, centroids: np.ndarray) -> np.ndarray:
+    """(V, in_channels) float32 network input for voxels with these centroids (bed frame, metres)."""
+    ones = np.ones((len(centroids), 1), np.float32)
+    if not config.normals:
+        return ones
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(centroids, np.float64)))
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3 * config.voxel, max_nn=16))
+    normals = np.asarray(cloud.normals, np.float32)
+    if len(normals) != len(centroids):
+        normals = np.tile(np.float32([0, 0, 1]), (len(centroids), 1))
+    normals *= np.where(normals[:, 2:3] < 0, -1.0, 1.0).astype(np.float32)
+    return np.hstack([ones, normals])
 
 
 class ResBlock(nn.Module):
@@ -77,7 +103,7 @@ def _up(in_ch: int, out_ch: int) -> nn.ModuleDict:
 
 
 class MushroomNet(nn.Module):
-    """Sparse U-Net backbone + per-voxel head; input one constant feature per voxel (geometry only)."""
+    """Sparse U-Net backbone + per-voxel head; geometry only (``voxel_features``), never colour."""
 
     def __init__(self, config: NetworkConfig = NetworkConfig()):
         super().__init__()
@@ -85,7 +111,7 @@ class MushroomNet(nn.Module):
         c1, c2, c3, c4 = config.channels
         u1, u2, u3, u4 = config.up_channels
         self.relu = SparseReLU()
-        self.conv1 = SubmanifoldConv3d(1, c1, config.first_kernel)
+        self.conv1 = SubmanifoldConv3d(config.in_channels, c1, config.first_kernel)
         self.norm1 = SparseBatchNorm(c1)
         self.block1 = ResBlock(c1)
         self.down2, self.down3, self.down4 = _down(c1, c2), _down(c2, c3), _down(c3, c4)

@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from perception.cap import cap_rotation
 from perception.encoding import encode
-from perception.model import LENGTH_UNIT, PRESETS as NETWORK_PRESETS, MushroomNet, NetworkConfig
+from perception.model import LENGTH_UNIT, PRESETS as NETWORK_PRESETS, MushroomNet, NetworkConfig, voxel_features
 from perception.sparse import SparseTensor
 from perception.synthetic.scene import SceneConfig, generate_scene
 
@@ -90,14 +90,19 @@ def augmented_sample(config: TrainConfig, iteration: int) -> dict[str, np.ndarra
             "residual": targets.residual, "orientation": targets.orientation}
 
 
-def _producer(config: TrainConfig, start: int, stop: int, queue: mp.Queue) -> None:
+def _producer(config: TrainConfig, network: NetworkConfig, start: int, stop: int, queue: mp.Queue) -> None:
+    """Worker process: scenes, targets and network input for iterations ``start`` to ``stop``, in order."""
     torch.set_num_threads(1)
     for iteration in range(start, stop):
-        queue.put(augmented_sample(config, iteration))
+        coords, existence, residual, orientation, centroids = voxel_targets(augmented_sample(config, iteration),
+                                                                           network.voxel)
+        queue.put({"iteration": iteration, "coords": coords.numpy(), "features": voxel_features(network, centroids),
+                   "existence": existence.numpy(), "residual": residual.numpy(), "orientation": orientation.numpy()})
 
 
 def voxel_targets(sample: dict, voxel: float):
-    """Network input and per-voxel targets (means over each voxel's points)."""
+    """Voxels and their targets (means over each voxel's points): coords, existence, residual
+    (LENGTH_UNITs), orientation, and the voxel centroids (metres, numpy)."""
     from perception.detect import network_input
 
     coords, point_to_voxel, centroids = network_input(sample["points"], voxel)
@@ -115,7 +120,8 @@ def voxel_targets(sample: dict, voxel: float):
     residual = torch.where(existence[:, None] > 0, center_sum / existence.clamp(min=1e-6)[:, None]
                            - centroids.float(), torch.zeros(1)) / LENGTH_UNIT
     orientation = mean(sample["orientation"])[:, 0] / existence.clamp(min=1e-6)
-    return coords, existence, residual * (existence[:, None] > 0), orientation * (existence > 0)
+    return (coords, existence, residual * (existence[:, None] > 0), orientation * (existence > 0),
+            centroids.numpy())
 
 
 def loss_terms(output: torch.Tensor, existence: torch.Tensor, residual: torch.Tensor, orientation: torch.Tensor,
@@ -186,7 +192,8 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
 
     context = mp.get_context("fork")
     queue = context.Queue(maxsize=config.queue_size)
-    producer = context.Process(target=_producer, args=(config, start, config.iterations, queue), daemon=True)
+    producer = context.Process(target=_producer, args=(config, network_config, start, config.iterations, queue),
+                               daemon=True)
     producer.start()
     history = open(run_dir / "history.csv", "a", newline="")
     writer = csv.writer(history)
@@ -213,10 +220,9 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
                 break
             sample = queue.get(timeout=600)
             assert sample["iteration"] == iteration
-            coords, existence, residual, orientation = voxel_targets(sample, network_config.voxel)
-            coords = coords.to(device)
-            output = model(SparseTensor(torch.ones(len(coords), 1, device=device), coords))
-            terms = loss_terms(output, existence.to(device), residual.to(device), orientation.to(device), config)
+            tensors = {k: torch.from_numpy(v).to(device) for k, v in sample.items() if k != "iteration"}
+            output = model(SparseTensor(tensors["features"], tensors["coords"]))
+            terms = loss_terms(output, tensors["existence"], tensors["residual"], tensors["orientation"], config)
             optimizer.zero_grad(set_to_none=True)
             terms["total"].backward()
             optimizer.step()

@@ -31,7 +31,8 @@ def test_augmented_samples_are_deterministic_and_consistent():
 
 def test_voxel_targets_are_point_targets_averaged_per_voxel():
     sample = augmented_sample(TrainConfig(scene=SMALL_SCENES), 1)
-    coords, existence, residual, orientation = voxel_targets(sample, 0.0045)
+    coords, existence, residual, orientation, centroids = voxel_targets(sample, 0.0045)
+    assert centroids.shape == (len(coords), 3)
     voxel_of = np.floor(sample["points"].astype(np.float64) / 0.0045).astype(np.int64)
     _, first, inverse, counts = np.unique(voxel_of, axis=0, return_index=True, return_inverse=True, return_counts=True)
     assert len(coords) == len(first)
@@ -86,3 +87,23 @@ def test_network_runs_on_any_device_and_predicts_five_values():
     if torch.cuda.is_available():
         cuda_out = model.cuda()(SparseTensor(torch.ones(len(coords), 1, device="cuda"), coords.cuda()))
         assert cuda_out.shape == (len(coords), 5)
+
+
+def test_normal_features_follow_the_surface_and_point_up():
+    from perception.cap import cap_rotation
+    from perception.model import voxel_features
+
+    rng = np.random.default_rng(0)
+    rotation = cap_rotation(0.4, -0.3)
+    plane = np.column_stack([rng.uniform(-0.05, 0.05, (2000, 2)), np.zeros(2000)]) @ rotation.T
+    features = voxel_features(NetworkConfig(normals=True), plane)
+    assert features.shape == (2000, 4) and np.all(features[:, 0] == 1)
+    np.testing.assert_allclose(features[:, 1:], np.tile(rotation[:, 2], (2000, 1)), atol=1e-4)
+    assert voxel_features(NetworkConfig(), plane).shape == (2000, 1)
+
+
+def test_training_with_normal_features_runs(tmp_path, monkeypatch):
+    monkeypatch.setitem(PRESETS, "tiny-n", NetworkConfig(**{**TINY.__dict__, "normals": True}))
+    config = TrainConfig(iterations=2, network="tiny-n", validation_scenes=0, scene=SMALL_SCENES)
+    model, _ = load_weights(train(config, tmp_path, progress=False, rerun=False))
+    assert model.conv1.weight.shape[1] == 4
