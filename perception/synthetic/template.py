@@ -47,8 +47,8 @@ def _profile() -> tuple[np.ndarray, np.ndarray]:
     dome = np.stack([radius * np.cos(elevation), height * np.sin(elevation)], 1)
     curl = np.linspace(0.0, np.pi / 2, 5)[1:]
     rim_pts = np.stack([radius - rim + rim * np.cos(curl), -rim * np.sin(curl)], 1)
-    gills = np.stack([np.linspace(radius - rim, stem_r, 6)[1:], np.full(5, -rim)], 1)
-    stem = np.stack([np.linspace(stem_r, 1.08 * stem_r, 6)[1:], np.linspace(-rim, -stem_len, 6)[1:]], 1)
+    gills = np.stack([np.linspace(radius - rim, stem_r, 4)[1:], np.full(3, -rim)], 1)
+    stem = np.stack([np.linspace(stem_r, 1.08 * stem_r, 4)[1:], np.linspace(-rim, -stem_len, 4)[1:]], 1)
     foot = np.array([[0.0, -stem_len]])
     profile = np.concatenate([dome, rim_pts, gills, stem, foot])
     is_cap = np.zeros(len(profile), bool)

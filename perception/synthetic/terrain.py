@@ -12,7 +12,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
-from scipy.spatial import cKDTree
 
 from perception.cap import cap_rotation
 
@@ -56,12 +55,22 @@ def soil_heightfield(rng: np.random.Generator, size: float, cell: float, kind: s
     xs = np.linspace(-size / 2, size / 2, n)
     shape = (n, n)
     if kind == "clods":
-        seeds = rng.uniform(-size / 2, size / 2, (int(rng.integers(150, 350)), 2))
+        # Voronoi clods on the grid: each cell takes its nearest seed's height, and sinks into a
+        # crack near the border with the next clod (distance to that border ~ (d2 - d1) / 2)
+        seeds = rng.integers(0, n, (int(rng.integers(150, 350)), 2))
         clod_height = rng.uniform(0.004, 0.014, len(seeds))
-        gx, gy = np.meshgrid(xs, xs)
-        dist, nearest = cKDTree(seeds).query(np.stack([gx.ravel(), gy.ravel()], 1), k=2)
-        crack = np.clip((dist[:, 1] - dist[:, 0]) / (rng.uniform(0.004, 0.008)), 0, 1).reshape(shape)
-        height = clod_height[nearest[:, 0]].reshape(shape) * np.sqrt(crack)
+        marker = np.ones(shape, bool)
+        marker[seeds[:, 0], seeds[:, 1]] = False
+        owner = np.full(shape, -1)
+        owner[seeds[:, 0], seeds[:, 1]] = np.arange(len(seeds))
+        _, (ri, rj) = ndimage.distance_transform_edt(marker, return_indices=True)
+        label = owner[ri, rj]
+        border = np.zeros(shape, bool)
+        border[:, 1:] |= label[:, 1:] != label[:, :-1]
+        border[1:, :] |= label[1:, :] != label[:-1, :]
+        to_border = ndimage.distance_transform_edt(~border) * cell
+        crack = np.clip(2 * to_border / rng.uniform(0.004, 0.008), 0, 1)
+        height = clod_height[label] * np.sqrt(crack)
         height = ndimage.gaussian_filter(height, 0.6)
         height += 0.0012 * _smooth_noise(rng, shape, 1.0)
     elif kind == "crumbs":
@@ -98,8 +107,10 @@ def deform_along_normals(rng: np.random.Generator, vertices: np.ndarray, normals
     centres = np.take_along_axis(vertices, picks[..., None], axis=-2)
     push = rng.normal(0.0, magnitude, batch + (count,))
     width = rng.uniform(*radius, batch + (count,))
-    d2 = np.sum((vertices[..., :, None, :] - centres[..., None, :, :]) ** 2, -1)
-    offset = np.sum(push[..., None, :] * np.exp(-d2 / (2 * width[..., None, :] ** 2)), -1)
+    offset = np.zeros(vertices.shape[:-1])
+    for bump in range(count):
+        d2 = np.sum((vertices - centres[..., bump, None, :]) ** 2, -1)
+        offset += push[..., bump, None] * np.exp(d2 * (-0.5 / width[..., bump, None] ** 2))
     return vertices + offset[..., None] * normals
 
 
