@@ -123,10 +123,15 @@ def cmd_train(args: argparse.Namespace) -> int:
                          validation_scenes=args.validation_scenes)
     torch_threads(args.threads)
     try:
-        weights = train(config, run_dir, resume=args.resume, device=args.device, progress=not args.quiet)
+        weights = train(config, run_dir, resume=args.resume, device=args.device, progress=not args.quiet,
+                        max_minutes=args.max_minutes)
     except ValueError as error:
         raise CliError(str(error)) from None
-    print(f"weights: {weights}")
+    if weights is None:
+        print(f"stopped after {args.max_minutes} minutes with a checkpoint in {run_dir}: continue with the same "
+              "flags and --resume")
+    else:
+        print(f"weights: {weights}")
     return 0
 
 
@@ -339,6 +344,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--validation-scenes", type=_non_negative_int, default=5,
                        help="val50 scenes scored at each validation (0: none)")
     train.add_argument("--resume", action="store_true", help="continue the checkpoint in --out exactly")
+    train.add_argument("--max-minutes", type=_positive(float),
+                       help="stop cleanly with a checkpoint after this many minutes (resume later)")
     train.add_argument("--device", help="cpu or cuda (default: cuda when available)")
     train.add_argument("--threads", type=_positive(int), help="torch threads (default: all cores)")
     train.add_argument("--quiet", action="store_true", help="no progress bar")

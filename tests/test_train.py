@@ -107,3 +107,9 @@ def test_training_with_normal_features_runs(tmp_path, monkeypatch):
     config = TrainConfig(iterations=2, network="tiny-n", validation_scenes=0, scene=SMALL_SCENES)
     model, _ = load_weights(train(config, tmp_path, progress=False, rerun=False))
     assert model.conv1.weight.shape[1] == 4
+
+
+def test_a_time_budget_stops_with_a_resumable_checkpoint(tmp_path, tiny_network):
+    config = TrainConfig(iterations=50, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
+    assert train(config, tmp_path, progress=False, rerun=False, max_minutes=1e-6) is None
+    assert torch.load(tmp_path / "checkpoint.pt", weights_only=False)["iteration"] < 50
