@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from capture.frames import transform_points
 from perception.cap import Mushroom
 from perception.instances import ClusterConfig, cluster
 from perception.model import LENGTH_UNIT, MushroomNet, voxel_features
@@ -88,13 +89,13 @@ DEFAULT_WEIGHTS = __import__("pathlib").Path(__file__).parent / "weights" / "def
 
 def transform_result(result: SceneResult, T_frame_bed: np.ndarray, frame: str) -> SceneResult:
     """The same caps expressed in another frame (rotations and centres moved; sizes unchanged)."""
-    rotation, translation = T_frame_bed[:3, :3], T_frame_bed[:3, 3]
-    mushrooms = [Mushroom(m.id, rotation @ m.center + translation, rotation @ m.rotation, m.scales, m.score,
-                          m.point_indices) for m in result.mushrooms]
-    fit = CapFit(result.fit.centers @ rotation.T + translation, rotation @ result.fit.rotations, result.fit.scales,
-                 result.fit.scores, result.fit.counts)
-    voxels = VoxelPrediction(result.voxels.centroids @ rotation.T + translation, result.voxels.existence,
-                             result.voxels.centers @ rotation.T + translation, result.voxels.orientation,
+    rotation = T_frame_bed[:3, :3]
+    centers = transform_points(T_frame_bed, result.fit.centers)
+    mushrooms = [Mushroom(m.id, centers[m.id], rotation @ m.rotation, m.scales, m.score, m.point_indices)
+                 for m in result.mushrooms]
+    fit = CapFit(centers, rotation @ result.fit.rotations, result.fit.scales, result.fit.scores, result.fit.counts)
+    voxels = VoxelPrediction(transform_points(T_frame_bed, result.voxels.centroids), result.voxels.existence,
+                             transform_points(T_frame_bed, result.voxels.centers), result.voxels.orientation,
                              result.voxels.point_to_voxel)
     return SceneResult(mushrooms, fit, result.point_labels, result.point_existence, voxels, frame, result.timings_ms)
 

@@ -160,6 +160,7 @@ def _load_model(path: str | None):
 def cmd_detect(args: argparse.Namespace) -> int:
     import json
 
+    from capture.frames import transform_points
     from fusion.bed import estimate_bed_frame
     from perception.cap import detections_json, tilt_deg
     from perception.detect import detect_points, log_rerun, transform_result
@@ -186,7 +187,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
         except (ValueError, RuntimeError) as error:
             raise CliError(f"cannot find the bed plane: {error}") from None
         frame = "input"
-    bed_points = (points - T_input_bed[:3, 3]) @ T_input_bed[:3, :3]
+    bed_points = transform_points(np.linalg.inv(T_input_bed), points)
     result = detect_points(model, bed_points, ClusterConfig(method=args.clustering))
     result = transform_result(result, T_input_bed, frame)
     up = T_input_bed[:3, 2]

@@ -49,8 +49,8 @@ def load_cloud(path: Path) -> LoadedCloud:
 
         cloud = o3d.io.read_point_cloud(str(path))
         points = np.asarray(cloud.points, np.float64)
-        if len(points) == 0 and path.stat().st_size > 0 and not _looks_like(path, suffix):
-            raise ValueError(f"{path} is not a readable {suffix} point cloud")
+        if len(points) == 0:
+            raise ValueError(f"{path}: the cloud is empty or not a readable {suffix} file")
         in_bed = False
     else:
         raise ValueError(f"{path}: unsupported cloud format {suffix or '(none)'}; use one of {', '.join(CLOUD_SUFFIXES)}")
@@ -69,7 +69,3 @@ def load_cloud(path: Path) -> LoadedCloud:
         points = points * scale
     return LoadedCloud(points, in_bed, scale)
 
-
-def _looks_like(path: Path, suffix: str) -> bool:
-    head = path.read_bytes()[:16]
-    return head.startswith(b"ply") if suffix == ".ply" else b"VERSION" in path.read_bytes()[:200] or head.startswith(b"#")
