@@ -53,24 +53,28 @@ class MeshScene:
         self._scene = o3d.t.geometry.RaycastingScene(nthreads=threads)
         self._scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),
                                   o3d.core.Tensor(np.ascontiguousarray(triangles, np.uint32)))
-        self._ray_cache: dict[CameraIntrinsics, tuple[np.ndarray, np.ndarray]] = {}
+        self._ray_cache: dict[CameraIntrinsics, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
-    def _camera_rays(self, intrinsics: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
-        """Ray directions (float32) in the camera frame with unit z, so the hit distance is the depth,
-        and the inverse length of each."""
+    def _camera_rays(self, intrinsics: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Homogeneous ray directions [x, y, 1, 1] (float32) in the camera frame with unit z, so the hit
+        distance is the depth and one matmul gives origin and direction; the inverse length of each;
+        and a reusable (N, 6) ray buffer (allocating it per frame costs more than filling it)."""
         if intrinsics not in self._ray_cache:
             u, v = np.meshgrid(np.arange(intrinsics.width, dtype=np.float32),
                                np.arange(intrinsics.height, dtype=np.float32))
             directions = np.stack([(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy,
                                    np.ones_like(u)], -1).reshape(-1, 3).astype(np.float32)
-            self._ray_cache[intrinsics] = (directions, 1.0 / np.linalg.norm(directions, axis=1))
+            homogeneous = np.concatenate([directions, np.ones((len(directions), 1), np.float32)], 1)
+            self._ray_cache[intrinsics] = (homogeneous, 1.0 / np.linalg.norm(directions, axis=1),
+                                           np.empty((len(directions), 6), np.float32))
         return self._ray_cache[intrinsics]
 
     def render(self, intrinsics: CameraIntrinsics, T_world_camera: np.ndarray) -> Render:
-        directions, inverse_length = self._camera_rays(intrinsics)
-        rays = np.empty((len(directions), 6), np.float32)
-        rays[:, :3] = T_world_camera[:3, 3]
-        np.matmul(directions, T_world_camera[:3, :3].T.astype(np.float32), out=rays[:, 3:])
+        directions, inverse_length, rays = self._camera_rays(intrinsics)
+        to_rays = np.zeros((4, 6), np.float32)
+        to_rays[3, :3] = T_world_camera[:3, 3]
+        to_rays[:3, 3:] = T_world_camera[:3, :3].T
+        np.matmul(directions, to_rays, out=rays)
         hit = self._scene.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=self._threads)
         depth = hit["t_hit"].numpy()
         missed = ~np.isfinite(depth)
@@ -158,6 +162,26 @@ class VirtualCameraConfig:
     sensor_id: str = "virtual"
     start_ns: int = 0
 
+    def pose(self, index: int) -> tuple[np.ndarray, float | None]:
+        """T_world_camera of view ``index`` and its turntable angle (None for fixed poses)."""
+        if self.turntable is not None:
+            angle = 2 * np.pi * index / self.views
+            return self.turntable.T_world_camera(angle), angle
+        return np.asarray(self.poses[index], np.float64), None
+
+    def __len__(self) -> int:
+        return self.views if self.turntable is not None else len(self.poses)
+
+
+def render_view(scene: MeshScene, config: VirtualCameraConfig, index: int) -> DepthFrame:
+    """View ``index`` with its own noise stream, so frames do not depend on who renders them or in what order."""
+    T_world_camera, angle = config.pose(index)
+    render = scene.render(config.intrinsics, T_world_camera)
+    depth = apply_sensor_model(render, config.sensor, np.random.default_rng([config.seed, index]))
+    timestamp = config.start_ns + int(round(index * 1e9 / config.fps))
+    return to_depth_frame(depth, config.intrinsics, config.sensor, T_world_camera, timestamp, config.sensor_id,
+                          angle)
+
 
 class VirtualSource(Source):
     """Renders each view of the config in turn, with the true pose on every frame."""
@@ -169,16 +193,9 @@ class VirtualSource(Source):
         self._vertices, self._triangles = vertices, triangles
         self._scene: MeshScene | None = None
         self._index = 0
-        self._rng = np.random.default_rng(config.seed)
-
-    def _pose(self, index: int) -> tuple[np.ndarray, float | None]:
-        if self.config.turntable is not None:
-            angle = 2 * np.pi * index / self.config.views
-            return self.config.turntable.T_world_camera(angle), angle
-        return np.asarray(self.config.poses[index], np.float64), None
 
     def __len__(self) -> int:
-        return self.config.views if self.config.turntable is not None else len(self.config.poses)
+        return len(self.config)
 
     def open(self) -> None:
         if self._scene is None:
@@ -188,12 +205,7 @@ class VirtualSource(Source):
         if self._index >= len(self):
             return None
         self.open()
-        T_world_camera, angle = self._pose(self._index)
-        render = self._scene.render(self.config.intrinsics, T_world_camera)
-        depth = apply_sensor_model(render, self.config.sensor, self._rng)
-        timestamp = self.config.start_ns + int(round(self._index * 1e9 / self.config.fps))
-        frame = to_depth_frame(depth, self.config.intrinsics, self.config.sensor, T_world_camera, timestamp,
-                               self.config.sensor_id, angle)
+        frame = render_view(self._scene, self.config, self._index)
         self._index += 1
         return frame
 
