@@ -4,6 +4,7 @@ frame by frame (``Fuser``, one cloud per turn)."""
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -57,6 +58,8 @@ class FusedCloud:
     """(F, 4, 4) the poses the frames were fused at."""
     flagged: tuple[str, ...] = ()
     """Frames whose refinement was implausible or impossible: fused at their prior pose."""
+    seconds: dict[str, float] = field(default_factory=dict)
+    """Wall time per stage (views, prior, refine, integrate, bed), for latency plots and benches."""
 
     def __len__(self) -> int:
         return len(self.points)
@@ -134,22 +137,37 @@ def bed_frame(points: np.ndarray, poses: np.ndarray, distance: float = 0.008) ->
 
 
 def _fuse(frames: list[DepthFrame], views: list[View] | None, config: FusionConfig, rig: Rig | None) -> FusedCloud:
+    seconds: dict[str, float] = {}
+    clock = time.perf_counter()
+
+    def lap(stage: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        seconds[stage] = seconds.get(stage, 0.0) + now - clock
+        clock = now
+
+    if views is None and len(frames) > 1 and (config.refine or _angle_source(frames, rig, config) == "unknown"):
+        views = [prepare_view(f, config.registration) for f in frames]
+    lap("views")
     prior, pairs = prior_poses(frames, rig, config, views)
+    lap("prior")
     poses, flagged = prior, ()
     if len(frames) > 1 and config.refine:
-        views = views or [prepare_view(f, config.registration) for f in frames]
         refined = refine_poses(views, prior, config.registration, pairs)
         poses = refined.poses
         flagged = tuple(frame_id(frames[k]) for k in np.flatnonzero(refined.flagged))
+    lap("refine")
     integration = config.integration
     if len(frames) == 1 and integration.mode != "merge":
         integration = replace(integration, mode="merge")
     surface = integrate(frames, poses, integration)
+    lap("integrate")
     T_world_bed = bed_frame(surface.points, poses, config.bed_distance)
     rotation, origin = T_world_bed[:3, :3].astype(np.float32), T_world_bed[:3, 3].astype(np.float32)
+    lap("bed")
     return FusedCloud(((surface.points - origin) @ rotation).astype(np.float32),
                       (surface.normals @ rotation).astype(np.float32), surface.colors, T_world_bed,
-                      tuple(frame_id(f) for f in frames), poses, flagged)
+                      tuple(frame_id(f) for f in frames), poses, flagged, seconds)
 
 
 def fuse(frames: list[DepthFrame], config: FusionConfig = FusionConfig(), rig: Rig | None = None) -> FusedCloud:
