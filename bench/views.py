@@ -1,0 +1,90 @@
+"""Does fusion help perception? The shipped model on the same virtual beds seen from 1 view, 2 cameras,
+4 views and 18 views (848x480, D405-like noise, true poses refined by ICP), fused and detected.
+
+A cap counts as ground truth in a setting when at least 5 fused points lie on its cap surface
+(within 2 mm), so every setting is scored on the caps it could see; n_gt says how many that was.
+Prints a Markdown table (AP@25, AP@50, axis angle, scale error, caps seen) for docs/RESULTS.md.
+Usage: python bench/views.py [--beds 10] [--model PATH]
+"""
+
+import sys
+from pathlib import Path
+
+# the bench folder holds fusion.py, which would shadow the fusion package
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
+
+import argparse  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+import open3d as o3d  # noqa: E402
+import torch  # noqa: E402
+
+from capture.virtual import VirtualCameraConfig, VirtualSource, circle_rig  # noqa: E402
+from fusion.cloud import FusionConfig, fuse  # noqa: E402
+from perception.detect import DEFAULT_WEIGHTS, detect_points, transform_result  # noqa: E402
+from perception.evaluate import SceneCaps, evaluate  # noqa: E402
+from perception.train import load_weights  # noqa: E402
+from pipeline.sources import VirtualBedRig, virtual_bed_source  # noqa: E402
+
+MIN_CAP_POINTS, ON_SURFACE = 5, 0.002
+SETTINGS = {"1 view": (0,), "2 cameras (opposite sides)": (0, 9), "4 views": (0, 4, 9, 13),
+            "18 views (full turn)": tuple(range(18))}
+"""Which of the 18 turntable views each setting fuses."""
+
+
+def visible_caps(bed, world_points: np.ndarray) -> np.ndarray:
+    """Indices of the caps with at least MIN_CAP_POINTS fused points on their cap surface."""
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(bed.vertices.astype(np.float32)),
+                        o3d.core.Tensor(bed.triangles.astype(np.uint32)))
+    closest = scene.compute_closest_points(o3d.core.Tensor(np.ascontiguousarray(world_points, np.float32)))
+    triangle = closest["primitive_ids"].numpy().astype(np.int64)
+    distance = np.linalg.norm(closest["points"].numpy() - world_points, axis=1)
+    on_cap = (distance <= ON_SURFACE) & bed.triangle_is_cap[triangle]
+    counts = np.bincount(bed.triangle_instance[triangle][on_cap], minlength=len(bed.centers))
+    return np.flatnonzero(counts >= MIN_CAP_POINTS)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--beds", type=int, default=10)
+    parser.add_argument("--model", type=Path, default=DEFAULT_WEIGHTS)
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    model, meta = load_weights(args.model)
+    preds = {name: [] for name in SETTINGS}
+    gts = {name: [] for name in SETTINGS}
+    points = {name: [] for name in SETTINGS}
+    all_caps = 0
+    for seed in range(args.beds):
+        rig = VirtualBedRig(seed=100 + seed)
+        _, bed = virtual_bed_source(rig)
+        all_caps += len(bed.centers)
+        frames = list(VirtualSource(bed.vertices, bed.triangles, VirtualCameraConfig(
+            turntable=circle_rig(np.zeros(3), rig.radius, rig.height), views=18, seed=seed)))
+        for name, indices in SETTINGS.items():
+            start = time.perf_counter()
+            fused = fuse([frames[k] for k in indices], FusionConfig(angles="pose"))
+            result = transform_result(detect_points(model, fused.points), fused.T_world_bed, "world")
+            seen = visible_caps(bed, fused.world_points)
+            preds[name].append(SceneCaps(result.fit.centers, result.fit.rotations, result.fit.scales,
+                                         result.fit.scores))
+            gts[name].append(SceneCaps(bed.centers[seen], bed.rotations[seen], bed.scales[seen]))
+            points[name].append(len(fused))
+            print(f"bed {seed} {name}: {len(fused)} points, {len(seen)}/{len(bed.centers)} caps seen, "
+                  f"{len(result.mushrooms)} detected, {time.perf_counter() - start:.1f} s", flush=True)
+    print(f"\nmodel: {args.model} ({meta.get('iteration', '?')} iterations); {args.beds} beds (seeds 100-"
+          f"{99 + args.beds}); MeanShift\n")
+    print("| views | AP@25 | AP@50 | axis angle (deg) | scale error | caps seen / all | points per bed |")
+    print("|---|---|---|---|---|---|---|")
+    for name in SETTINGS:
+        r = evaluate(preds[name], gts[name])
+        total = sum(len(g) for g in gts[name])
+        print(f"| {name} | {100 * r.ap25:.1f} % | {100 * r.ap50:.1f} % | {r.angle_deg:.2f} | {100 * r.scale_err:.1f} % "
+              f"| {total} / {all_caps} | {np.median(points[name]):.0f} |")
+
+
+if __name__ == "__main__":
+    main()
