@@ -1,0 +1,42 @@
+"""Clouds denser than the training scenes reach the network at the training density."""
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from capture.frames import voxel_representatives
+from perception.detect import TRAINING_SPACING, predict
+from perception.model import MushroomNet, NetworkConfig
+from perception.synthetic.scene import SceneConfig, generate_scene
+
+TINY = NetworkConfig(channels=(8, 8, 8, 8), up_channels=(8, 8, 8, 8), first_kernel=3, head_hidden=(8, 8))
+
+
+def test_a_dense_cloud_is_thinned_to_the_training_spacing_and_every_point_keeps_a_prediction():
+    torch.manual_seed(0)
+    model = MushroomNet(TINY).eval()
+    scene = generate_scene(2, SceneConfig(mushrooms=(5, 5)))
+    rng = np.random.default_rng(0)
+    dense = np.concatenate([scene.points + rng.normal(0, 0.0007, scene.points.shape) for _ in range(6)])
+    kept = voxel_representatives(dense, TRAINING_SPACING)
+    assert len(dense) > 2 * len(kept)
+
+    thinned = predict(model, dense)
+    direct = predict(model, dense[kept], spacing=None)
+    assert np.array_equal(thinned.centroids, direct.centroids)
+    assert np.allclose(thinned.existence, direct.existence) and np.allclose(thinned.centers, direct.centers)
+    assert np.array_equal(thinned.point_to_voxel[kept], direct.point_to_voxel)
+    # every other point takes a voxel that holds it or, failing that, the nearest one
+    others = np.setdiff1d(np.arange(len(dense)), kept)
+    own = np.floor(dense[others] / model.config.voxel)
+    hit = np.floor(thinned.centroids[thinned.point_to_voxel[others]] / model.config.voxel)
+    nearest = cKDTree(thinned.centroids).query(dense[others])[0]
+    chosen = np.linalg.norm(dense[others] - thinned.centroids[thinned.point_to_voxel[others]], axis=1)
+    assert np.all((own == hit).all(1) | np.isclose(chosen, nearest))
+
+
+def test_a_cloud_at_training_density_is_used_as_it_is():
+    torch.manual_seed(0)
+    model = MushroomNet(TINY).eval()
+    points = generate_scene(3, SceneConfig(mushrooms=(5, 5))).points
+    assert np.array_equal(predict(model, points).existence, predict(model, points, spacing=None).existence)
