@@ -253,6 +253,24 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_demo(args: argparse.Namespace) -> int:
+    from pipeline.demo import run_demo
+
+    out_dir = _writable_dir(args.out)
+    model, meta = _load_model(args.model)
+    torch_threads(args.threads)
+    rrd = None if args.no_rrd else out_dir / "demo.rrd"
+    print(f"a virtual D405 circles synthetic bed {args.seed} ({args.views} views, 848x480); "
+          f"model: {args.model or 'shipped'}")
+    result = run_demo(out_dir, model, args.seed, args.views, rrd, args.spawn, progress=not args.quiet)
+    stages = ", ".join(f"{name} {value:.1f} s" for name, value in result.seconds.items())
+    print(f"{result.caps_found} caps found, {result.caps_true} on the bed: AP@25 {result.ap25:.1%}, "
+          f"AP@50 {result.ap50:.1%}, axis error {result.angle_deg:.1f} deg ({stages})")
+    print(f"detections: {result.detections}  session: {result.recording}"
+          + (f"  rerun: {result.rrd} (open with: rerun {result.rrd})" if result.rrd else ""))
+    return 0
+
+
 def cmd_cameras(args: argparse.Namespace) -> int:
     from capture.source import find_cameras
 
@@ -372,6 +390,19 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--scenes", type=_positive(int), help="only the first N scenes of each set")
     evaluate.add_argument("--quiet", action="store_true")
     evaluate.set_defaults(run=cmd_eval)
+
+    demo = sub.add_parser("demo", help="the whole chain on a virtual turntable: capture, MCAP, fusion, "
+                          "detection, Rerun (no hardware)")
+    demo.add_argument("--out", default="demo", help="output folder (default ./demo): session.mcap, "
+                      "detections.json, demo.rrd")
+    demo.add_argument("--seed", type=_non_negative_int, default=0, help="which synthetic bed")
+    demo.add_argument("--views", type=_positive(int), default=18, help="turntable views (default 18)")
+    demo.add_argument("--model", help="weights file (default: the shipped model)")
+    demo.add_argument("--spawn", action="store_true", help="also show the run in a Rerun viewer")
+    demo.add_argument("--no-rrd", action="store_true", help="do not write demo.rrd")
+    demo.add_argument("--threads", type=_positive(int), help="torch threads (default: all cores)")
+    demo.add_argument("--quiet", action="store_true", help="no progress bar")
+    demo.set_defaults(run=cmd_demo)
 
     cameras = sub.add_parser("cameras", help="list attached RealSense and OAK cameras")
     cameras.set_defaults(run=cmd_cameras)
