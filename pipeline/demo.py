@@ -12,7 +12,6 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 
 DETECTIONS_TOPIC = "/perception/mushrooms_json"
 

@@ -11,3 +11,24 @@ def rrd_entity_rows(path) -> collections.Counter:
     for chunk in RrdReader(str(path)).stream().to_chunks():
         rows[str(chunk.entity_path)] += chunk.num_rows
     return rows
+
+
+def tiny_network_config():
+    """A network small enough for fast tests (the real presets take seconds per scene)."""
+    from perception.model import NetworkConfig
+
+    return NetworkConfig(channels=(8, 8, 8, 8), up_channels=(8, 8, 8, 8), first_kernel=3, head_hidden=(8, 8))
+
+
+def write_tiny_weights(path):
+    """An untrained tiny network saved as a weights file, biased to see few caps so clustering stays quick."""
+    import torch
+
+    from perception.model import MushroomNet
+    from perception.train import save_weights
+
+    model = MushroomNet(tiny_network_config()).eval()
+    with torch.no_grad():
+        model.head[-1].bias[0] = -3.0
+    save_weights(model, path, iterations=0)
+    return path

@@ -4,25 +4,15 @@ import json
 
 import numpy as np
 import pytest
-import torch
 
 from capture.mcap_io import McapSource, read_point_cloud
-from helpers import rrd_entity_rows
-from perception.model import MushroomNet, NetworkConfig
-from perception.train import save_weights
+from helpers import rrd_entity_rows, write_tiny_weights
 from test_detect_cli import run
-
-TINY = NetworkConfig(channels=(8, 8, 8, 8), up_channels=(8, 8, 8, 8), first_kernel=3, head_hidden=(8, 8))
 
 
 @pytest.fixture(scope="module")
 def tiny_weights(tmp_path_factory):
-    path = tmp_path_factory.mktemp("model") / "tiny.pt"
-    model = MushroomNet(TINY).eval()
-    with torch.no_grad():
-        model.head[-1].bias[0] = -3.0
-    save_weights(model, path, iterations=0)
-    return path
+    return write_tiny_weights(tmp_path_factory.mktemp("model") / "tiny.pt")
 
 
 def test_demo_records_fuses_detects_and_logs(tmp_path, tiny_weights):

@@ -7,13 +7,9 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from perception.model import MushroomNet, NetworkConfig
 from perception.synthetic.scene import SceneConfig, generate_scene
-from perception.train import save_weights
-from helpers import rrd_entity_rows
+from helpers import rrd_entity_rows, write_tiny_weights
 from pipeline.clouds import load_cloud
-
-TINY = NetworkConfig(channels=(8, 8, 8, 8), up_channels=(8, 8, 8, 8), first_kernel=3, head_hidden=(8, 8))
 
 
 def run(*args):
@@ -40,15 +36,7 @@ def write_ply(path, points):
 
 @pytest.fixture(scope="module")
 def weights(tmp_path_factory):
-    """An untrained tiny network, biased to see few caps so that clustering stays quick."""
-    import torch
-
-    path = tmp_path_factory.mktemp("model") / "tiny.pt"
-    model = MushroomNet(TINY).eval()
-    with torch.no_grad():
-        model.head[-1].bias[0] = -3.0
-    save_weights(model, path, iterations=0)
-    return path
+    return write_tiny_weights(tmp_path_factory.mktemp("model") / "tiny.pt")
 
 
 @pytest.fixture(scope="module")

@@ -6,10 +6,11 @@ from scipy.spatial import cKDTree
 
 from capture.frames import voxel_representatives
 from perception.detect import TRAINING_SPACING, predict
-from perception.model import MushroomNet, NetworkConfig
+from helpers import tiny_network_config
+from perception.model import MushroomNet
 from perception.synthetic.scene import SceneConfig, generate_scene
 
-TINY = NetworkConfig(channels=(8, 8, 8, 8), up_channels=(8, 8, 8, 8), first_kernel=3, head_hidden=(8, 8))
+TINY = tiny_network_config()
 
 
 def test_a_dense_cloud_is_thinned_to_the_training_spacing_and_every_point_keeps_a_prediction():

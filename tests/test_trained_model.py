@@ -1,0 +1,24 @@
+"""The shipped model on held-out synthetic beds (slow: loads val50 and runs the network)."""
+
+import pytest
+
+from perception.detect import DEFAULT_WEIGHTS, evaluate_on_scenes
+from perception.synthetic.dataset import load_preset
+from perception.train import load_weights
+
+pytestmark = pytest.mark.slow
+
+
+def test_shipped_model_finds_the_caps_of_val50_beds():
+    model, meta = load_weights(DEFAULT_WEIGHTS)
+    scenes = load_preset("val50", progress=False, limit=5)
+    results = evaluate_on_scenes(model, scenes)
+    for method, result in results.items():
+        assert result.ap25 > 0.95, f"{method}: AP@25 {result.ap25:.3f} on the first 5 val50 beds"
+        assert result.angle_deg < 20.0 and result.scale_err < 0.1
+
+
+def test_shipped_model_is_small_and_says_how_it_was_made():
+    assert DEFAULT_WEIGHTS.stat().st_size <= 30e6
+    _, meta = load_weights(DEFAULT_WEIGHTS)
+    assert meta["network"]["normals"] is True and meta["iterations"] > 0
