@@ -472,6 +472,7 @@ class McapSource(Source):
 
 
 FUSED_CLOUD_TOPIC = "/fusion/cloud"
+DETECTIONS_TOPIC = "/perception/mushrooms_json"
 
 
 def read_point_cloud(path: str | os.PathLike, topic: str = FUSED_CLOUD_TOPIC) -> tuple[np.ndarray, str]:

@@ -5,6 +5,7 @@ followed by a voxel merge. Both return world-frame points, unit normals and opti
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -99,8 +100,12 @@ def integrate_tsdf(frames: list[DepthFrame], poses: np.ndarray, config: Integrat
 def smooth_depth(depth_m: np.ndarray, kernel: int, depth_sigma: float, pixel_sigma: float) -> np.ndarray:
     """Edge-preserving bilateral smoothing of a metric depth image (Open3D); holes stay holes."""
     image = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(depth_m, np.float32)))
-    smoothed = image.filter_bilateral(kernel, depth_sigma, pixel_sigma).as_tensor().numpy().reshape(depth_m.shape)
-    return np.where(depth_m > 0, smoothed, np.float32(0.0))
+    try:
+        smoothed = image.filter_bilateral(kernel, depth_sigma, pixel_sigma).as_tensor().numpy()
+    except RuntimeError as error:  # Open3D's CPU bilateral filter needs Intel IPP (x86 builds only)
+        warnings.warn(f"depth smoothing unavailable in this Open3D build, using raw depth: {error}", stacklevel=2)
+        return depth_m
+    return np.where(depth_m > 0, smoothed.reshape(depth_m.shape), np.float32(0.0))
 
 
 def merge_points(frames: list[DepthFrame], poses: np.ndarray, config: IntegrationConfig = IntegrationConfig()) -> Surface:

@@ -124,7 +124,8 @@ def prepare_view(frame: DepthFrame, config: RegistrationConfig = RegistrationCon
         level = max(0, int(round(np.log2(voxel / footprint))))
         while len(pyramid) <= level:
             pyramid.append(_halve_depth(pyramid[-1], config.depth_jump))
-        levels.append(_organised_cloud(pyramid[level], _halved_intrinsics(frame.intrinsics.matrix, level)))
+        levels.append(_organised_cloud(pyramid[level], _halved_intrinsics(frame.intrinsics.matrix, level),
+                                      config.depth_jump))
     return View(tuple(levels), frame_id(frame))
 
 
@@ -144,16 +145,19 @@ def _halved_intrinsics(matrix: np.ndarray, times: int) -> np.ndarray:
     return scaled
 
 
-def _organised_cloud(depth: np.ndarray, matrix: np.ndarray) -> o3d.geometry.PointCloud:
+def _organised_cloud(depth: np.ndarray, matrix: np.ndarray, jump: float) -> o3d.geometry.PointCloud:
     """Points of a depth image (camera frame) with normals from the central differences of
-    neighbouring pixels (one-sided differences bias point-to-plane ICP by ~0.5 mm), facing the camera."""
+    neighbouring pixels (one-sided differences bias point-to-plane ICP by ~0.5 mm), facing the camera;
+    pixels next to a hole or a depth step above ``jump`` (an occluding edge) are left out."""
     vertices = o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(depth))).create_vertex_map(
         o3d.core.Tensor(matrix), 0.0).as_tensor().numpy()
     normals = np.zeros_like(vertices)
     normals[1:-1, 1:-1] = np.cross(vertices[1:-1, 2:] - vertices[1:-1, :-2], vertices[2:, 1:-1] - vertices[:-2, 1:-1])
-    valid = depth > 0
-    keep = np.zeros_like(valid)
-    keep[1:-1, 1:-1] = valid[1:-1, 1:-1] & valid[1:-1, 2:] & valid[1:-1, :-2] & valid[2:, 1:-1] & valid[:-2, 1:-1]
+    centre = depth[1:-1, 1:-1]
+    keep = np.zeros(depth.shape, bool)
+    keep[1:-1, 1:-1] = centre > 0
+    for neighbour in (depth[1:-1, 2:], depth[1:-1, :-2], depth[2:, 1:-1], depth[:-2, 1:-1]):
+        keep[1:-1, 1:-1] &= (neighbour > 0) & (np.abs(neighbour - centre) < jump)
     points, normals = vertices[keep].astype(np.float64), normals[keep].astype(np.float64)
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
     normals *= -np.sign(np.einsum("ij,ij->i", normals, points))[:, None]

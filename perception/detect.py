@@ -69,6 +69,9 @@ def predict(model: MushroomNet, points: np.ndarray, spacing: float | None = TRAI
     them cost 3 points of AP@25 on val50).
     """
     points = np.asarray(points, np.float64)
+    if len(points) == 0:
+        empty = np.zeros((0, 3))
+        return VoxelPrediction(empty, np.zeros(0), empty, np.zeros(0), np.zeros(0, np.int64))
     kept = np.arange(len(points))
     if spacing:
         representatives = voxel_representatives(points, spacing)
@@ -82,8 +85,11 @@ def predict(model: MushroomNet, points: np.ndarray, spacing: float | None = TRAI
     existence = torch.sigmoid(out[:, 0]).numpy()
     centers = (centroids + out[:, 1:4] * LENGTH_UNIT).numpy()
     orientation = out[:, 4].clamp(0.0, 1.0).numpy()
-    point_to_voxel = _nearest_voxel(points, model.config.voxel, coords.cpu().numpy(), centroids.numpy())
-    point_to_voxel[kept] = kept_to_voxel.numpy()
+    if len(kept) == len(points):
+        point_to_voxel = kept_to_voxel.numpy()
+    else:
+        point_to_voxel = _nearest_voxel(points, model.config.voxel, coords.cpu().numpy(), centroids.numpy())
+        point_to_voxel[kept] = kept_to_voxel.numpy()
     return VoxelPrediction(centroids.numpy(), existence, centers, orientation, point_to_voxel)
 
 

@@ -256,16 +256,19 @@ def cmd_eval(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     from pipeline.demo import run_demo
 
+    model, _ = _load_model(args.model)
     out_dir = _writable_dir(args.out)
-    model, meta = _load_model(args.model)
     torch_threads(args.threads)
-    rrd = None if args.no_rrd else out_dir / "demo.rrd"
     print(f"a virtual D405 circles synthetic bed {args.seed} ({args.views} views, 848x480); "
           f"model: {args.model or 'shipped'}")
-    result = run_demo(out_dir, model, args.seed, args.views, rrd, args.spawn, progress=not args.quiet)
+    try:
+        result = run_demo(out_dir, model, args.seed, args.views, not args.no_rrd, args.spawn, progress=not args.quiet)
+    except (OSError, ValueError) as error:
+        raise CliError(str(error)) from None
     stages = ", ".join(f"{name} {value:.1f} s" for name, value in result.seconds.items())
+    axis = f"axis error {result.angle_deg:.1f} deg" if result.caps_found else "no caps matched"
     print(f"{result.caps_found} caps found, {result.caps_true} on the bed: AP@25 {result.ap25:.1%}, "
-          f"AP@50 {result.ap50:.1%}, axis error {result.angle_deg:.1f} deg ({stages})")
+          f"AP@50 {result.ap50:.1%}, {axis} ({stages})")
     print(f"detections: {result.detections}  session: {result.recording}"
           + (f"  rerun: {result.rrd} (open with: rerun {result.rrd})" if result.rrd else ""))
     return 0

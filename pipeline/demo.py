@@ -8,12 +8,12 @@ Because the bed is synthetic, the demo also scores its detections against the tr
 from __future__ import annotations
 
 import json
+import os
+import shutil
+import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-
-
-DETECTIONS_TOPIC = "/perception/mushrooms_json"
 
 
 @dataclass(frozen=True)
@@ -29,12 +29,29 @@ class DemoResult:
     seconds: dict[str, float]
 
 
-def run_demo(out_dir: Path, model, seed: int = 0, views: int = 18, rrd: Path | None = None, spawn: bool = False,
+def run_demo(out_dir: Path, model, seed: int = 0, views: int = 18, rrd: bool = True, spawn: bool = False,
              progress: bool = True) -> DemoResult:
+    """Run the chain into ``out_dir``: session.mcap, detections.json and (``rrd``) demo.rrd appear
+    together when the run succeeds; an interrupted or failed run leaves the folder as it was."""
+    staging = Path(tempfile.mkdtemp(prefix=".demo-", dir=out_dir))
+    try:
+        result = _run(staging, model, seed, views, rrd, spawn, progress)
+        moved = {}
+        for name in ("session.mcap", "detections.json", "demo.rrd"):
+            if (staging / name).exists():
+                os.replace(staging / name, out_dir / name)
+                moved[name] = out_dir / name
+        return replace(result, detections=moved["detections.json"], recording=moved["session.mcap"],
+                       rrd=moved.get("demo.rrd"))
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def _run(folder: Path, model, seed: int, views: int, rrd: bool, spawn: bool, progress: bool) -> DemoResult:
     from tqdm import tqdm
 
     from capture.frames import log_rerun as log_frame
-    from capture.mcap_io import FUSED_CLOUD_TOPIC, McapRecorder
+    from capture.mcap_io import DETECTIONS_TOPIC, FUSED_CLOUD_TOPIC, McapRecorder
     from fusion.cloud import Fuser, FusionConfig, log_rerun as log_fused
     from fusion.turntable import Rig
     from perception.cap import detections_json
@@ -47,8 +64,9 @@ def run_demo(out_dir: Path, model, seed: int = 0, views: int = 18, rrd: Path | N
     start = time.perf_counter()
     source, bed = virtual_bed_source(VirtualBedRig(seed=seed, views=views))
     fuser = Fuser(FusionConfig(angles="encoder"), Rig(source.config.turntable))
-    recording = out_dir / "session.mcap"
-    detections_path = out_dir / "detections.json"
+    recording = folder / "session.mcap"
+    detections_path = folder / "detections.json"
+    rrd = folder / "demo.rrd" if rrd else None
     fused = None
     with rerun_stream(rrd, spawn=spawn, blueprint=default_blueprint([source.config.sensor_id])) as rec, \
             McapRecorder(recording, overwrite=True) as recorder, source:
@@ -63,9 +81,11 @@ def run_demo(out_dir: Path, model, seed: int = 0, views: int = 18, rrd: Path | N
                 set_frame(rec, index, frame.timestamp_ns)
                 log_frame(rec, frame)
             tick = time.perf_counter()
-            fused = fuser.add(frame) or fused
+            completed = fuser.add(frame)
+            fused = completed if completed is not None else fused
             fuse_s += time.perf_counter() - tick
-        fused = fused or fuser.flush()
+        if fused is None:
+            fused = fuser.flush()
         seconds["render"], seconds["fusion"] = render_s, fuse_s
         tick = time.perf_counter()
         result = transform_result(detect_points(model, fused.points), fused.T_world_bed, "world")
@@ -77,9 +97,7 @@ def run_demo(out_dir: Path, model, seed: int = 0, views: int = 18, rrd: Path | N
         if rec is not None:
             log_fused(rec, fused)
             log_detections(rec, result, fused.world_points)
-    tmp = detections_path.with_name(detections_path.name + ".partial")
-    tmp.write_text(json.dumps(document, indent=1))
-    tmp.replace(detections_path)
+    detections_path.write_text(json.dumps(document, indent=1))
     score = evaluate([SceneCaps(result.fit.centers, result.fit.rotations, result.fit.scales, result.fit.scores)],
                      [SceneCaps(bed.centers, bed.rotations, bed.scales)])
     return DemoResult(detections_path, recording, rrd, len(result.mushrooms), len(bed.centers), score.ap25,

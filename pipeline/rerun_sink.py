@@ -35,9 +35,13 @@ def rerun_stream(rrd: Path | None = None, spawn: bool = False, serve: bool = Fal
         rec.serve_grpc(default_blueprint=blueprint)
     try:
         yield rec
-    finally:
-        rec.flush()
+    except BaseException:
         rec.disconnect()
+        if tmp is not None:
+            tmp.unlink(missing_ok=True)
+        raise
+    rec.flush()
+    rec.disconnect()
     if tmp is not None:
         tmp.replace(rrd)
 

@@ -36,3 +36,28 @@ def test_demo_records_fuses_detects_and_logs(tmp_path, tiny_weights):
 def test_demo_with_a_missing_model_file_fails_in_one_line(tmp_path):
     result = run("demo", "--out", tmp_path / "demo", "--model", tmp_path / "missing.pt")
     assert result.returncode == 2 and "does not exist" in result.stderr
+
+
+def test_a_failed_demo_leaves_the_folder_as_it_was(tmp_path, tiny_weights, monkeypatch):
+    import perception.detect
+
+    out = tmp_path / "demo"
+    out.mkdir()
+    (out / "detections.json").write_text("{}")
+
+    def broken(*args, **kwargs):
+        raise ValueError("the network broke")
+
+    monkeypatch.setattr(perception.detect, "detect_points", broken)
+    result = run("demo", "--out", out, "--views", 2, "--model", tiny_weights, "--quiet")
+    assert result.returncode == 2 and result.stderr.strip() == "mushroom-pose demo: error: the network broke"
+    assert sorted(p.name for p in out.iterdir()) == ["detections.json"]
+    assert (out / "detections.json").read_text() == "{}"
+
+
+def test_demo_into_a_file_is_refused(tmp_path, tiny_weights):
+    target = tmp_path / "taken"
+    target.write_text("keep me")
+    result = run("demo", "--out", target, "--model", tiny_weights)
+    assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1
+    assert target.read_text() == "keep me"

@@ -27,13 +27,17 @@ def test_a_dense_cloud_is_thinned_to_the_training_spacing_and_every_point_keeps_
     assert np.array_equal(thinned.centroids, direct.centroids)
     assert np.allclose(thinned.existence, direct.existence) and np.allclose(thinned.centers, direct.centers)
     assert np.array_equal(thinned.point_to_voxel[kept], direct.point_to_voxel)
-    # every other point takes a voxel that holds it or, failing that, the nearest one
+    # every other point takes its own voxel when that is occupied, else the voxel with the nearest centroid
     others = np.setdiff1d(np.arange(len(dense)), kept)
-    own = np.floor(dense[others] / model.config.voxel)
-    hit = np.floor(thinned.centroids[thinned.point_to_voxel[others]] / model.config.voxel)
-    nearest = cKDTree(thinned.centroids).query(dense[others])[0]
-    chosen = np.linalg.norm(dense[others] - thinned.centroids[thinned.point_to_voxel[others]], axis=1)
-    assert np.all((own == hit).all(1) | np.isclose(chosen, nearest))
+    voxel = model.config.voxel
+    occupied = {tuple(cell) for cell in np.floor(thinned.centroids / voxel).astype(int)}
+    own = np.floor(dense[others] / voxel).astype(int)
+    has_own = np.array([tuple(cell) in occupied for cell in own])
+    assert 0 < has_own.sum() < len(others)
+    chosen = thinned.centroids[thinned.point_to_voxel[others]]
+    assert np.array_equal(np.floor(chosen[has_own] / voxel).astype(int), own[has_own])
+    nearest = cKDTree(thinned.centroids).query(dense[others][~has_own])[0]
+    assert np.allclose(np.linalg.norm(dense[others][~has_own] - chosen[~has_own], axis=1), nearest)
 
 
 def test_a_cloud_at_training_density_is_used_as_it_is():
