@@ -21,8 +21,11 @@ MODES = ("tsdf", "merge")
 class IntegrationConfig:
     """Defaults give about 1 point per 2 mm of bed surface (120-150 k points for a 0.6 m bed)."""
 
-    mode: str = "tsdf"
-    """"tsdf" (denoised surface) or "merge" (back-project and voxel-merge: faster, keeps the noise)."""
+    mode: str = "merge"
+    """"merge" (smooth each depth image, back-project, voxel-merge) or "tsdf" (a TSDF's zero surface).
+    Merge is the default because the perception model reads its clouds far better: with the shipped
+    model on 5 virtual beds, AP@25 0.88 for 4 merged views against 0.64 for the same views through
+    the TSDF (bench/views.py has the full table)."""
     voxel: float = 0.002
     truncation_voxels: float = 4.0
     """TSDF truncation distance in voxels; must exceed the depth noise (about 1.3 mm at 0.45 m)."""
