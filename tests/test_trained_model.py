@@ -10,12 +10,14 @@ pytestmark = pytest.mark.slow
 
 
 def test_shipped_model_finds_the_caps_of_val50_beds():
-    model, meta = load_weights(DEFAULT_WEIGHTS)
+    model, _ = load_weights(DEFAULT_WEIGHTS)
     scenes = load_preset("val50", progress=False, limit=5)
     results = evaluate_on_scenes(model, scenes)
-    for method, result in results.items():
-        assert result.ap25 > 0.95, f"{method}: AP@25 {result.ap25:.3f} on the first 5 val50 beds"
-        assert result.angle_deg < 20.0 and result.scale_err < 0.1
+    # MeanShift is the default; DBSCAN scored 88.7 % on all of val50 (MODEL_CARD.md)
+    for method, floor in (("meanshift", 0.95), ("dbscan", 0.85)):
+        result = results[method]
+        assert result.ap25 > floor, f"{method}: AP@25 {result.ap25:.3f} on the first 5 val50 beds"
+        assert result.angle_deg < 15.0 and result.scale_err < 0.06
 
 
 def test_shipped_model_is_small_and_says_how_it_was_made():
