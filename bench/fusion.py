@@ -22,7 +22,7 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 import open3d as o3d  # noqa: E402
 
-from capture.virtual import Turntable, VirtualCameraConfig, VirtualSource, circle_rig  # noqa: E402
+from capture.virtual import Turntable  # noqa: E402
 from fusion.cloud import FusionConfig, fuse  # noqa: E402
 from fusion.registration import (RegistrationConfig, fpfh, pose_change, prepare_view, register_global,  # noqa: E402
                                  register_pair)
@@ -37,11 +37,9 @@ SUCCESS_DEG, SUCCESS_M = 1.0, 0.005
 def session(seed: int, views: int):
     """Frames of one bed, their true poses, the frames as a blind recording (perturbed encoder angles,
     no poses) and the rig with a shifted axis."""
-    rig_config = VirtualBedRig(seed=seed, views=views)
-    _, bed = virtual_bed_source(rig_config)
-    turntable = circle_rig(np.zeros(3), rig_config.radius, rig_config.height)
-    frames = list(VirtualSource(bed.vertices, bed.triangles,
-                                VirtualCameraConfig(turntable=turntable, views=views, seed=seed)))
+    source, bed = virtual_bed_source(VirtualBedRig(seed=seed, views=views))
+    turntable = source.config.turntable
+    frames = list(source)
     rng = np.random.default_rng(1000 + seed)
     angle_error = np.radians(3.0) * rng.uniform(-1, 1, views)
     angle_error[0] = 0.0

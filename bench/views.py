@@ -20,7 +20,6 @@ import numpy as np  # noqa: E402
 import open3d as o3d  # noqa: E402
 import torch  # noqa: E402
 
-from capture.virtual import VirtualCameraConfig, VirtualSource, circle_rig  # noqa: E402
 from fusion.cloud import FusionConfig, fuse  # noqa: E402
 from perception.detect import DEFAULT_WEIGHTS, detect_points, transform_result  # noqa: E402
 from perception.evaluate import SceneCaps, evaluate  # noqa: E402
@@ -59,11 +58,9 @@ def main() -> None:
     points = {name: [] for name in SETTINGS}
     all_caps = 0
     for seed in range(args.beds):
-        rig = VirtualBedRig(seed=100 + seed)
-        _, bed = virtual_bed_source(rig)
+        source, bed = virtual_bed_source(VirtualBedRig(seed=100 + seed, views=18))
         all_caps += len(bed.centers)
-        frames = list(VirtualSource(bed.vertices, bed.triangles, VirtualCameraConfig(
-            turntable=circle_rig(np.zeros(3), rig.radius, rig.height), views=18, seed=seed)))
+        frames = list(source)
         for name, indices in SETTINGS.items():
             start = time.perf_counter()
             fused = fuse([frames[k] for k in indices], FusionConfig(angles="pose"))

@@ -42,6 +42,11 @@ class DepthFrame:
     T_world_camera: np.ndarray | None = None
     turntable_angle: float | None = None
 
+    @property
+    def depth_m(self) -> np.ndarray:
+        """The depth image in metres (float32, 0 = invalid)."""
+        return self.depth.astype(np.float32) * np.float32(self.depth_scale)
+
     def __post_init__(self) -> None:
         if self.depth.ndim != 2 or self.depth.dtype != np.uint16:
             raise ValueError(f"depth must be a 2-D uint16 image, got {self.depth.dtype} {self.depth.shape}")
@@ -65,7 +70,7 @@ def backproject(depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> tuple[np.n
 
 def frame_to_points(frame: DepthFrame) -> np.ndarray:
     """A frame's valid depth as points (N, 3) in metres in the camera frame."""
-    return backproject(frame.depth.astype(np.float32) * np.float32(frame.depth_scale), frame.intrinsics)[0]
+    return backproject(frame.depth_m, frame.intrinsics)[0]
 
 
 def transform_points(T_parent_child: np.ndarray, points: np.ndarray) -> np.ndarray:

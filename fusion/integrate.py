@@ -117,7 +117,7 @@ def merge_points(frames: list[DepthFrame], poses: np.ndarray, config: Integratio
     with_color = all(f.color is not None for f in frames)
     points, colors = [], []
     for frame, pose in zip(frames, poses):
-        depth_m = frame.depth.astype(np.float32) * np.float32(frame.depth_scale)
+        depth_m = frame.depth_m
         if config.smoothing is not None:
             depth_m = smooth_depth(depth_m, *config.smoothing)
         depth_m = np.where(depth_m <= config.depth_max, depth_m, np.float32(0.0))

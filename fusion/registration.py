@@ -114,7 +114,7 @@ def prepare_view(frame: DepthFrame, config: RegistrationConfig = RegistrationCon
     with normals from neighbouring pixels: about 15x faster than voxel down-sampling the
     back-projected cloud and estimating normals from k-d tree neighbourhoods, and as accurate.
     """
-    depth = frame.depth.astype(np.float32) * np.float32(frame.depth_scale)
+    depth = frame.depth_m
     depth[depth > config.depth_max] = 0.0
     seen = depth[depth > 0]
     footprint = float(np.median(seen)) / frame.intrinsics.fx if len(seen) else config.voxels[-1]

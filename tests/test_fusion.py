@@ -176,7 +176,7 @@ def test_single_frame_gives_its_back_projected_cloud(session):
     frame = session.frames[0]
     fused = fuse([frame])
     smoothed = dataclasses.replace(frame, depth=np.round(smooth_depth(
-        frame.depth * np.float32(frame.depth_scale), *IntegrationConfig().smoothing) / frame.depth_scale).astype(np.uint16))
+        frame.depth_m, *IntegrationConfig().smoothing) / frame.depth_scale).astype(np.uint16))
     back_projected = transform_points(frame.T_world_camera, frame_to_points(smoothed))
     distance, _ = cKDTree(back_projected).query(fused.world_points)
     assert len(fused) > 1000 and distance.max() < 0.002 * np.sqrt(3)
