@@ -19,12 +19,14 @@ reg = o3d.pipelines.registration
 class RegistrationConfig:
     """Defaults suit a bed seen from 0.3-0.5 m by a D405-class camera (about 1-1.5 mm depth noise)."""
 
-    voxels: tuple[float, ...] = (0.008, 0.004, 0.002)
+    voxels: tuple[float, ...] = (0.008, 0.004)
     """Point spacing per ICP level, coarse to fine (metres): each level is the depth pyramid level
-    whose pixels come nearest to this size at the frame's median depth."""
-    distances: tuple[float, ...] = (0.024, 0.010, 0.004)
+    whose pixels come nearest to this size at the frame's median depth. A third level at 2 mm
+    (4x the points) took refinement of 18 views from 0.45 s to 2.5 s for errors of 0.02 deg instead
+    of 0.05 deg, far inside the 0.3 deg target."""
+    distances: tuple[float, ...] = (0.024, 0.008)
     """Maximum correspondence distance per level: the coarse one must exceed the prior's error."""
-    iterations: tuple[int, ...] = (30, 30, 40)
+    iterations: tuple[int, ...] = (30, 30)
     kernel: str = "tukey"
     """Robust loss of the point-to-plane residuals: "tukey", "huber" or "none"."""
     kernel_scale: float = 0.5

@@ -41,6 +41,11 @@ class TrainConfig:
     weight_existence: float = 1.0
     weight_residual: float = 100.0
     weight_orientation: float = 1.0
+    orientation_on_caps: bool = False
+    """Average the orientation MSE over cap voxels only (the paper's loss averages over every voxel,
+    most of them soil with target 0, so the term that sets cap tilt is the weakest of the three)."""
+    init_weights: str | None = None
+    """Start from these weights (a model.pt) instead of random ones: fine-tuning with a new loss."""
     network: str = "slim"
     seed: int = 0
     checkpoint_every: int = 200
@@ -130,11 +135,17 @@ def loss_terms(output: torch.Tensor, existence: torch.Tensor, residual: torch.Te
     terms = {
         "existence": F.binary_cross_entropy_with_logits(output[:, 0], existence),
         "residual": F.mse_loss(output[:, 1:4], residual),
-        "orientation": F.mse_loss(output[:, 4], orientation),
+        "orientation": (_masked_mse(output[:, 4], orientation, existence > 0) if config.orientation_on_caps
+                        else F.mse_loss(output[:, 4], orientation)),
     }
     terms["total"] = (config.weight_existence * terms["existence"] + config.weight_residual * terms["residual"]
                       + config.weight_orientation * terms["orientation"])
     return terms
+
+
+def _masked_mse(prediction: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    weight = mask.to(prediction.dtype)
+    return (weight * (prediction - target) ** 2).sum() / weight.sum().clamp(min=1.0)
 
 
 def _atomic_save(payload: dict, path: Path) -> None:
@@ -162,6 +173,13 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
     network_config = NETWORK_PRESETS[config.network]
     torch.manual_seed(config.seed)
     model = MushroomNet(network_config).to(device)
+    base = {}
+    if config.init_weights:
+        initial, base = load_weights(Path(config.init_weights), device)
+        if initial.config != network_config:
+            raise ValueError(f"{config.init_weights} holds a different network than {config.network!r}; "
+                             "pass the --network it was trained with")
+        model.load_state_dict(initial.state_dict())
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
     milestones = [int(f * config.iterations) for f in config.milestones]
     scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, milestones, config.gamma)
@@ -263,8 +281,14 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
     weights = run_dir / "model.pt"
     state = torch.load(checkpoint_path, map_location="cpu", weights_only=False)
     model.load_state_dict(state["model"])
-    save_weights(model, weights, train_config=state["train_config"], iterations=state["iteration"],
-                 train_seconds=state["elapsed_s"])
+    meta = {"train_config": state["train_config"], "iterations": state["iteration"], "train_seconds": state["elapsed_s"]}
+    if base:
+        # a fine-tuned model's cost includes the run it started from
+        meta["init"] = {k: base.get(k) for k in ("iterations", "train_seconds", "train_config")}
+        meta["total_iterations"] = state["iteration"] + int(base.get("total_iterations", base.get("iterations", 0)))
+        meta["total_train_seconds"] = state["elapsed_s"] + float(base.get("total_train_seconds",
+                                                                           base.get("train_seconds", 0.0)))
+    save_weights(model, weights, **meta)
     return weights
 
 

@@ -120,7 +120,11 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise CliError(f"{run_dir} already holds a checkpoint: add --resume to continue it, or pick a new --out")
     config = TrainConfig(iterations=args.iterations, lr=args.lr, network=args.network, seed=args.seed,
                          checkpoint_every=args.checkpoint_every, validate_every=args.validate_every,
-                         validation_scenes=args.validation_scenes)
+                         validation_scenes=args.validation_scenes, weight_orientation=args.weight_orientation,
+                         orientation_on_caps=args.orientation_on_caps,
+                         init_weights=str(Path(args.init).resolve()) if args.init else None)
+    if args.init and not Path(args.init).is_file():
+        raise CliError(f"--init: no weights file at {args.init}")
     torch_threads(args.threads)
     try:
         weights = train(config, run_dir, resume=args.resume, device=args.device, progress=not args.quiet,
@@ -365,6 +369,11 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--validate-every", type=_positive(int), default=1000)
     train.add_argument("--validation-scenes", type=_non_negative_int, default=5,
                        help="val50 scenes scored at each validation (0: none)")
+    train.add_argument("--weight-orientation", type=_positive(float), default=1.0,
+                       help="weight of the orientation loss (default 1, the paper's)")
+    train.add_argument("--orientation-on-caps", action="store_true",
+                       help="average the orientation loss over cap voxels only (default: every voxel, the paper's)")
+    train.add_argument("--init", help="start from these weights (fine-tuning), e.g. perception/weights/default.pt")
     train.add_argument("--resume", action="store_true", help="continue the checkpoint in --out exactly")
     train.add_argument("--max-minutes", type=_positive(float),
                        help="stop cleanly with a checkpoint after this many minutes (resume later)")

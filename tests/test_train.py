@@ -56,6 +56,35 @@ def test_loss_is_bce_plus_weighted_mse():
     assert terms["total"].item() == pytest.approx(bce + 100 / 6 + 0.125, rel=1e-6)
 
 
+def test_orientation_loss_on_caps_averages_over_cap_voxels_only():
+    output = torch.tensor([[0.0, 0.0, 0.0, 0.0, 0.5], [0.0, 0.0, 0.0, 0.0, 0.3], [0.0, 0.0, 0.0, 0.0, 0.0]])
+    existence, orientation = torch.tensor([1.0, 0.0, 1.0]), torch.tensor([1.0, 0.0, 0.2])
+    config = TrainConfig(orientation_on_caps=True, weight_orientation=10.0)
+    terms = loss_terms(output, existence, torch.zeros(3, 3), orientation, config)
+    assert terms["orientation"].item() == pytest.approx((0.25 + 0.04) / 2, rel=1e-6)
+    assert terms["total"].item() == pytest.approx(terms["existence"].item() + 10 * (0.25 + 0.04) / 2, rel=1e-6)
+
+
+def test_fine_tuning_starts_from_the_given_weights_and_adds_their_cost(tmp_path, tiny_network, monkeypatch):
+    base_config = TrainConfig(iterations=2, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
+    base = train(base_config, tmp_path / "base", progress=False, rerun=False)
+    base_model, base_meta = load_weights(base)
+    tuned_config = TrainConfig(**{**base_config.__dict__, "iterations": 1, "lr": 1e-12, "seed": 1,
+                                  "init_weights": str(base)})
+    tuned_model, meta = load_weights(train(tuned_config, tmp_path / "tuned", progress=False, rerun=False))
+    fresh_model, _ = load_weights(train(TrainConfig(**{**tuned_config.__dict__, "init_weights": None}),
+                                        tmp_path / "fresh", progress=False, rerun=False))
+    weight = next(k for k, v in base_model.state_dict().items() if v.dim() == 3)  # the first sparse conv
+    torch.testing.assert_close(tuned_model.state_dict()[weight], base_model.state_dict()[weight], rtol=0, atol=1e-6)
+    assert not torch.allclose(fresh_model.state_dict()[weight], base_model.state_dict()[weight], atol=1e-3)
+    assert meta["init"]["iterations"] == 2 and meta["total_iterations"] == 3
+    assert meta["total_train_seconds"] == pytest.approx(meta["train_seconds"] + base_meta["train_seconds"])
+    monkeypatch.setitem(PRESETS, "other", NetworkConfig(**{**TINY.__dict__, "channels": (8, 8, 8, 16)}))
+    with pytest.raises(ValueError, match="different network"):
+        train(TrainConfig(**{**tuned_config.__dict__, "network": "other"}), tmp_path / "other", progress=False,
+              rerun=False)
+
+
 def test_resume_continues_exactly(tmp_path, tiny_network):
     config = TrainConfig(iterations=4, network=tiny_network, checkpoint_every=2, validation_scenes=0,
                          scene=SMALL_SCENES, queue_size=2)
