@@ -10,9 +10,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from sklearn.cluster import DBSCAN, MeanShift
+import sklearn
+from sklearn.cluster import DBSCAN, MeanShift, get_bin_seeds
 
 METHODS = ("meanshift", "dbscan")
+SEEDINGS = ("peaks", "bins")
 
 
 @dataclass(frozen=True)
@@ -25,10 +27,18 @@ class ClusterConfig:
     """DBSCAN neighbourhood in voxels (input points are about one voxel apart)."""
     min_points: int = 4
     """Clusters smaller than this are dropped (noise, slivers of caps seen edge-on)."""
+    seeding: str = "peaks"
+    """MeanShift seeds: "bins" = scikit-learn's bin seeding (every bandwidth-sized bin holding
+    min_points / 2 collapsed points); "peaks" = only those of them that hold at least as many points as
+    each of their 6 face neighbours. A cap's collapsed points straddle several bins, which all climb to
+    the same centre, and scikit-learn runs each seed as its own Python loop: on val50, peaks cluster
+    3x faster (120 vs 379 ms) at the same AP (AP@25 97.9 vs 97.8 %)."""
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise ValueError(f"unknown clustering method {self.method!r}; choose one of {METHODS}")
+        if self.seeding not in SEEDINGS:
+            raise ValueError(f"unknown MeanShift seeding {self.seeding!r}; choose one of {SEEDINGS}")
 
 
 def cluster(points: np.ndarray, collapsed: np.ndarray, existence: np.ndarray, voxel: float,
@@ -39,9 +49,14 @@ def cluster(points: np.ndarray, collapsed: np.ndarray, existence: np.ndarray, vo
     if len(candidates) < config.min_points:
         return labels
     if config.method == "meanshift":
-        model = MeanShift(bandwidth=config.bandwidth_voxels * voxel, bin_seeding=True,
-                          min_bin_freq=max(1, config.min_points // 2), cluster_all=False)
-        found = model.fit_predict(collapsed[candidates])
+        bandwidth, min_bin_freq = config.bandwidth_voxels * voxel, max(1, config.min_points // 2)
+        seeds = (peak_seeds if config.seeding == "peaks" else get_bin_seeds)(collapsed[candidates], bandwidth,
+                                                                             min_bin_freq)
+        if len(seeds) == 0:
+            return labels
+        # the inputs are ours and finite: skipping scikit-learn's per-call checks saves ~20 %
+        with sklearn.config_context(assume_finite=True, skip_parameter_validation=True):
+            found = MeanShift(bandwidth=bandwidth, seeds=seeds, cluster_all=False).fit_predict(collapsed[candidates])
     else:
         found = DBSCAN(eps=config.eps_voxels * voxel, min_samples=3).fit_predict(points[candidates])
     counts = np.bincount(found[found >= 0]) if (found >= 0).any() else np.zeros(0, np.int64)
@@ -51,3 +66,27 @@ def cluster(points: np.ndarray, collapsed: np.ndarray, existence: np.ndarray, vo
     relabel[kept] = np.arange(len(kept))
     labels[candidates] = relabel[np.where(found >= 0, found, len(counts))]
     return labels
+
+
+def peak_seeds(points: np.ndarray, bin_size: float, min_bin_freq: int = 1) -> np.ndarray:
+    """Centres of the bins (scikit-learn's ``get_bin_seeds`` grid) that hold ``min_bin_freq`` points or
+    more and at least as many as each of their 6 face neighbours (against all 26
+    neighbours: 30 ms faster, but 0.2 points less AP@25 on val50, from small caps beside big ones)."""
+    bins, counts = np.unique(np.round(points / bin_size).astype(np.int64), axis=0, return_counts=True)
+    keep = counts >= min_bin_freq
+    bins, counts = bins[keep], counts[keep]
+    if len(bins) == 0:
+        return np.zeros((0, points.shape[1]))
+    low = bins.min(0) - 1
+    span = bins.max(0) - low + 2
+
+    def key(cells: np.ndarray) -> np.ndarray:
+        cells = cells - low
+        return (cells[..., 0] * span[1] + cells[..., 1]) * span[2] + cells[..., 2]
+
+    keys = key(bins)  # np.unique sorted the rows, so the keys are sorted too
+    offsets = np.concatenate([np.eye(3, dtype=np.int64), -np.eye(3, dtype=np.int64)])
+    neighbour_keys = key(bins[:, None, :] + offsets[None])
+    slot = np.minimum(np.searchsorted(keys, neighbour_keys), len(keys) - 1)
+    neighbour_counts = np.where(keys[slot] == neighbour_keys, counts[slot], 0)
+    return bins[counts >= neighbour_counts.max(1)] * bin_size

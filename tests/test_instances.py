@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from perception.instances import ClusterConfig, cluster
+from perception.instances import ClusterConfig, cluster, peak_seeds
 
 
 def blobs(rng, centres, sizes, spread):
@@ -40,3 +40,26 @@ def test_dbscan_splits_caps_separated_by_a_gap():
 def test_nothing_above_threshold_gives_no_instances():
     points = np.random.default_rng(3).normal(size=(50, 3))
     assert np.all(cluster(points, points, np.zeros(50), 0.0045) == -1)
+
+
+def test_peak_seeds_keep_bins_that_outnumber_their_face_neighbours():
+    bin_size = 0.01
+    cells = {(0, 0, 0): 5, (1, 0, 0): 3, (2, 0, 0): 4, (0, 1, 1): 6, (5, 5, 5): 1}
+    points = np.concatenate([np.tile(np.array(c, float) * bin_size, (n, 1)) for c, n in cells.items()])
+    points += np.random.default_rng(4).uniform(-0.004, 0.004, points.shape)
+    seeds = peak_seeds(points, bin_size, min_bin_freq=2)
+    # (0,0,0) beats its face neighbour (1,0,0); (0,1,1) touches it only along an edge; (2,0,0) beats
+    # (1,0,0); the lone point is below min_bin_freq
+    expected = np.array([[0, 0, 0], [0, 1, 1], [2, 0, 0]], float) * bin_size
+    np.testing.assert_allclose(seeds[np.lexsort(seeds.T[::-1])], expected, atol=1e-12)
+
+
+def test_peak_and_bin_seeding_find_the_same_caps():
+    rng = np.random.default_rng(5)
+    centres = rng.uniform(-0.2, 0.2, (25, 3)) * [1, 1, 0.1]
+    centres = centres[np.all(np.linalg.norm(centres[:, None] - centres[None], axis=2) + np.eye(25) > 0.03, 1)]
+    collapsed = blobs(rng, centres, rng.integers(10, 80, len(centres)), 0.0015)
+    peaks = cluster(collapsed, collapsed, np.ones(len(collapsed)), 0.0045)
+    bins = cluster(collapsed, collapsed, np.ones(len(collapsed)), 0.0045, ClusterConfig(seeding="bins"))
+    assert peaks.max() + 1 == len(centres)
+    np.testing.assert_array_equal(peaks, bins)
