@@ -72,7 +72,7 @@ def main() -> None:
             points[name].append(len(fused))
             print(f"bed {seed} {name}: {len(fused)} points, {len(seen)}/{len(bed.centers)} caps seen, "
                   f"{len(result.mushrooms)} detected, {time.perf_counter() - start:.1f} s", flush=True)
-    print(f"\nmodel: {args.model} ({meta.get('iterations', '?')} iterations); {args.beds} beds (seeds 100-"
+    print(f"\nmodel: {args.model} ({meta.get('total_iterations', meta.get('iterations', '?'))} iterations); {args.beds} beds (seeds 100-"
           f"{99 + args.beds}); MeanShift\n")
     print("| views | AP@25 | AP@50 | axis angle (deg) | scale error | caps seen / all | points per bed |")
     print("|---|---|---|---|---|---|---|")
