@@ -2,7 +2,8 @@
 
 Medians over scenes with 2 torch threads, for the shipped model (or --model). The clustering
 baseline is scikit-learn MeanShift without bin seeding (every point a seed), timed in the same run
-on the same inputs, and beside it MeanShift seeded by scikit-learn's bins instead of our peaks. Targets: end to end <= 400 ms for a 0.5 m x 0.5 m bed (about 20 k voxels),
+on the same inputs, and beside it MeanShift seeded by scikit-learn's bins instead of our peaks.
+Targets: end to end <= 400 ms for a 0.5 m x 0.5 m bed (about 20 k voxels),
 pose <= 5 ms for 45 caps.
 Usage: python bench/perception.py [--model PATH] [--scenes N] [--visibility hpr|camera]
 """

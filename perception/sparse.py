@@ -162,7 +162,8 @@ class _SparseConvFunction(torch.autograd.Function):
 
     Saves only ``features`` and ``weight``; backward gathers again instead of keeping the per-offset
     gathered copies, which would cost K times the input's memory. Rows are gathered with
-    ``index_select``, about 1.4x faster end to end than indexing (``features[i]``) on CPU.
+    ``index_select``: the network's forward pass on val50 beds took 192 ms instead of 242 ms with
+    indexing (``features[i]``) on 2 CPU cores.
     """
 
     @staticmethod

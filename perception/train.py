@@ -173,20 +173,22 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
     network_config = NETWORK_PRESETS[config.network]
     torch.manual_seed(config.seed)
     model = MushroomNet(network_config).to(device)
-    base = {}
-    if config.init_weights:
+    init = None
+    if config.init_weights and not (resume and checkpoint_path.exists()):
         initial, base = load_weights(Path(config.init_weights), device)
         if initial.config != network_config:
             raise ValueError(f"{config.init_weights} holds a different network than {config.network!r}; "
                              "pass the --network it was trained with")
         model.load_state_dict(initial.state_dict())
+        init = _provenance(Path(config.init_weights), base)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
     milestones = [int(f * config.iterations) for f in config.milestones]
     scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, milestones, config.gamma)
     start, elapsed_before = 0, 0.0
     if resume and checkpoint_path.exists():
         state = torch.load(checkpoint_path, map_location=device, weights_only=False)
-        if state["train_config"] != config.to_dict():
+        # runs saved before a field existed ran with its default
+        if {**TrainConfig().to_dict(), **state["train_config"]} != config.to_dict():
             raise ValueError(f"{checkpoint_path} was made with a different configuration; "
                              "resume with the same flags or use a new run folder")
         model.load_state_dict(state["model"])
@@ -194,6 +196,7 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
         scheduler.load_state_dict(state["scheduler"])
         torch.set_rng_state(state["torch_rng"])
         start, elapsed_before = state["iteration"], state["elapsed_s"]
+        init = state.get("init")
     else:
         (run_dir / "history.csv").unlink(missing_ok=True)
     (run_dir / "train_config.json").write_text(json.dumps(config.to_dict(), indent=1))
@@ -227,7 +230,8 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
         _atomic_save({"model": model.state_dict(), "optimizer": optimizer.state_dict(),
                       "scheduler": scheduler.state_dict(), "torch_rng": torch.get_rng_state(),
                       "iteration": iteration, "elapsed_s": elapsed_before + time.perf_counter() - session_start,
-                      "train_config": config.to_dict(), "network": network_config.to_dict()}, checkpoint_path)
+                      "train_config": config.to_dict(), "network": network_config.to_dict(), "init": init},
+                     checkpoint_path)
 
     end = config.iterations if stop_at is None else min(stop_at, config.iterations)
     deadline = None if max_minutes is None else session_start + 60 * max_minutes
@@ -282,14 +286,26 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
     state = torch.load(checkpoint_path, map_location="cpu", weights_only=False)
     model.load_state_dict(state["model"])
     meta = {"train_config": state["train_config"], "iterations": state["iteration"], "train_seconds": state["elapsed_s"]}
-    if base:
+    if state.get("init"):
         # a fine-tuned model's cost includes the run it started from
-        meta["init"] = {k: base.get(k) for k in ("iterations", "train_seconds", "train_config")}
-        meta["total_iterations"] = state["iteration"] + int(base.get("total_iterations", base.get("iterations", 0)))
-        meta["total_train_seconds"] = state["elapsed_s"] + float(base.get("total_train_seconds",
-                                                                           base.get("train_seconds", 0.0)))
+        meta["init"] = state["init"]
+        meta["total_iterations"] = state["iteration"] + state["init"]["total_iterations"]
+        meta["total_train_seconds"] = state["elapsed_s"] + state["init"]["total_train_seconds"]
     save_weights(model, weights, **meta)
     return weights
+
+
+def _provenance(path: Path, meta: dict) -> dict:
+    """What a fine-tuning run started from, kept in its checkpoint (the file at ``path`` may change or
+    move later): the file's SHA-256 and its training cost so far. A checkpoint as the start counts
+    what it had done."""
+    import hashlib
+
+    iterations = meta.get("total_iterations", meta.get("iterations", meta.get("iteration", 0)))
+    seconds = meta.get("total_train_seconds", meta.get("train_seconds", meta.get("elapsed_s", 0.0)))
+    return {"path": str(path), "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
+            "total_iterations": int(iterations or 0), "total_train_seconds": float(seconds or 0.0),
+            "train_config": meta.get("train_config"), "init": meta.get("init")}
 
 
 def save_weights(model: MushroomNet, path: Path, **meta) -> None:

@@ -115,6 +115,9 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     if args.network not in NETWORK_PRESETS:
         raise CliError(f"unknown network {args.network!r}; choose one of {sorted(NETWORK_PRESETS)}")
+    resuming = args.resume and (Path(args.out) / "checkpoint.pt").is_file()
+    if args.init and not resuming and not Path(args.init).is_file():
+        raise CliError(f"--init: no weights file at {args.init}")
     run_dir = _writable_dir(args.out)
     if (run_dir / "checkpoint.pt").exists() and not args.resume:
         raise CliError(f"{run_dir} already holds a checkpoint: add --resume to continue it, or pick a new --out")
@@ -123,8 +126,6 @@ def cmd_train(args: argparse.Namespace) -> int:
                          validation_scenes=args.validation_scenes, weight_orientation=args.weight_orientation,
                          orientation_on_caps=args.orientation_on_caps,
                          init_weights=str(Path(args.init).resolve()) if args.init else None)
-    if args.init and not Path(args.init).is_file():
-        raise CliError(f"--init: no weights file at {args.init}")
     torch_threads(args.threads)
     try:
         weights = train(config, run_dir, resume=args.resume, device=args.device, progress=not args.quiet,

@@ -63,3 +63,27 @@ def test_peak_and_bin_seeding_find_the_same_caps():
     bins = cluster(collapsed, collapsed, np.ones(len(collapsed)), 0.0045, ClusterConfig(seeding="bins"))
     assert peaks.max() + 1 == len(centres)
     np.testing.assert_array_equal(peaks, bins)
+
+
+def test_a_small_cap_beside_a_big_one_is_found_without_a_peak_bin_of_its_own():
+    voxel = 0.0045
+    bandwidth = ClusterConfig().bandwidth_voxels * voxel
+    rng = np.random.default_rng(6)
+    big = np.array([-0.45 * bandwidth, 0.0, 0.0]) + rng.normal(0, 0.0003, (200, 3))
+    small = np.array([1.45 * bandwidth, 0.0, 0.0]) + rng.normal(0, 0.0003, (20, 3))
+    collapsed = np.concatenate([big, small])
+    # the small cap's bin borders the big cap's, which holds more points: it is no peak
+    assert len(peak_seeds(collapsed, bandwidth, 2)) == 1
+    labels = cluster(collapsed, collapsed, np.ones(len(collapsed)), voxel)
+    np.testing.assert_array_equal(labels, np.repeat([0, 1], [200, 20]))
+
+
+def test_scattered_or_non_finite_candidates_make_no_caps_and_no_error():
+    voxel = 0.0045
+    scattered = np.arange(30)[:, None] * np.array([0.05, 0.0, 0.0])  # no two within a bin
+    assert np.all(cluster(scattered, scattered, np.ones(30), voxel) == -1)
+    rng = np.random.default_rng(7)
+    collapsed = rng.normal(0, 0.0005, (40, 3))
+    collapsed[:5] = np.nan
+    labels = cluster(collapsed, collapsed, np.ones(40), voxel)
+    assert np.all(labels[:5] == -1) and np.all(labels[5:] == 0)

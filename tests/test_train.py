@@ -66,23 +66,33 @@ def test_orientation_loss_on_caps_averages_over_cap_voxels_only():
 
 
 def test_fine_tuning_starts_from_the_given_weights_and_adds_their_cost(tmp_path, tiny_network, monkeypatch):
+    import hashlib
+    import shutil
+
     base_config = TrainConfig(iterations=2, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
     base = train(base_config, tmp_path / "base", progress=False, rerun=False)
     base_model, base_meta = load_weights(base)
-    tuned_config = TrainConfig(**{**base_config.__dict__, "iterations": 1, "lr": 1e-12, "seed": 1,
-                                  "init_weights": str(base)})
-    tuned_model, meta = load_weights(train(tuned_config, tmp_path / "tuned", progress=False, rerun=False))
+    base_hash = hashlib.sha256(base.read_bytes()).hexdigest()
+    init = tmp_path / "init.pt"
+    shutil.copy(base, init)
+    tuned_config = TrainConfig(**{**base_config.__dict__, "iterations": 2, "lr": 1e-12, "seed": 1,
+                                  "init_weights": str(init)})
+    assert train(tuned_config, tmp_path / "tuned", progress=False, rerun=False, stop_at=1) is None
+    shutil.copy(tmp_path / "tuned" / "checkpoint.pt", init)  # the start file changes before the resume
+    tuned_model, meta = load_weights(train(tuned_config, tmp_path / "tuned", resume=True, progress=False,
+                                           rerun=False))
     fresh_model, _ = load_weights(train(TrainConfig(**{**tuned_config.__dict__, "init_weights": None}),
                                         tmp_path / "fresh", progress=False, rerun=False))
     weight = next(k for k, v in base_model.state_dict().items() if v.dim() == 3)  # the first sparse conv
     torch.testing.assert_close(tuned_model.state_dict()[weight], base_model.state_dict()[weight], rtol=0, atol=1e-6)
     assert not torch.allclose(fresh_model.state_dict()[weight], base_model.state_dict()[weight], atol=1e-3)
-    assert meta["init"]["iterations"] == 2 and meta["total_iterations"] == 3
+    assert meta["init"]["sha256"] == base_hash and meta["init"]["total_iterations"] == 2
+    assert meta["total_iterations"] == 4
     assert meta["total_train_seconds"] == pytest.approx(meta["train_seconds"] + base_meta["train_seconds"])
     monkeypatch.setitem(PRESETS, "other", NetworkConfig(**{**TINY.__dict__, "channels": (8, 8, 8, 16)}))
     with pytest.raises(ValueError, match="different network"):
-        train(TrainConfig(**{**tuned_config.__dict__, "network": "other"}), tmp_path / "other", progress=False,
-              rerun=False)
+        train(TrainConfig(**{**tuned_config.__dict__, "network": "other", "init_weights": str(base)}),
+              tmp_path / "other", progress=False, rerun=False)
 
 
 def test_resume_continues_exactly(tmp_path, tiny_network):
@@ -142,3 +152,15 @@ def test_a_time_budget_stops_with_a_resumable_checkpoint(tmp_path, tiny_network)
     config = TrainConfig(iterations=50, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
     assert train(config, tmp_path, progress=False, rerun=False, max_minutes=1e-6) is None
     assert torch.load(tmp_path / "checkpoint.pt", weights_only=False)["iteration"] < 50
+
+
+def test_a_checkpoint_from_before_a_new_flag_resumes_with_its_default(tmp_path, tiny_network):
+    config = TrainConfig(iterations=2, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
+    train(config, tmp_path, progress=False, rerun=False, stop_at=1)
+    state = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    del state["train_config"]["orientation_on_caps"], state["train_config"]["init_weights"]
+    torch.save(state, tmp_path / "checkpoint.pt")
+    assert train(config, tmp_path, resume=True, progress=False, rerun=False) is not None
+    with pytest.raises(ValueError, match="different configuration"):
+        train(TrainConfig(**{**config.__dict__, "orientation_on_caps": True}), tmp_path, resume=True,
+              progress=False, rerun=False)
