@@ -1,7 +1,7 @@
 """``mushroom-pose demo``: the whole chain with no hardware and no download.
 
 A virtual D405 on a virtual turntable circles a synthetic bed; every frame is recorded to MCAP and shown
-in Rerun; the turn is fused (encoder prior refined by ICP, TSDF) and the shipped model finds the caps.
+in Rerun; the turn is fused (encoder prior refined by ICP, merged depth) and the shipped model finds the caps.
 Because the bed is synthetic, the demo also scores its detections against the truth.
 """
 
