@@ -114,6 +114,26 @@ def voxel_representatives(points: np.ndarray, voxel: float) -> np.ndarray:
     return kept
 
 
+def cell_lookup(cells: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """Row of ``cells`` (M, 3) integer grid cells equal to each query cell (..., 3), or -1 if none."""
+    cells, queries = np.asarray(cells, np.int64), np.asarray(queries, np.int64)
+    flat_queries = queries.reshape(-1, 3)
+    if len(cells) == 0 or len(flat_queries) == 0:
+        return np.full(queries.shape[:-1], -1, np.int64)
+    low = np.minimum(cells.min(0), flat_queries.min(0))
+    span = np.maximum(cells.max(0), flat_queries.max(0)) - low + 1
+
+    def key(grid: np.ndarray) -> np.ndarray:
+        grid = grid - low
+        return (grid[..., 0] * span[1] + grid[..., 1]) * span[2] + grid[..., 2]
+
+    cell_keys = key(cells)
+    order = np.argsort(cell_keys)
+    query_keys = key(queries)
+    row = order[np.minimum(np.searchsorted(cell_keys[order], query_keys), len(order) - 1)]
+    return np.where(cell_keys[row] == query_keys, row, -1)
+
+
 def log_rerun(rec, frame: DepthFrame, entity: str | None = None) -> None:
     """A frame in Rerun under ``world/camera/<id>``: its pose, pinhole, depth image and colour."""
     import rerun as rr

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from capture.frames import transform_points, voxel_representatives
+from capture.frames import cell_lookup, transform_points, voxel_representatives
 from perception.cap import Mushroom
 from perception.instances import ClusterConfig, cluster
 from perception.model import LENGTH_UNIT, MushroomNet, voxel_features
@@ -96,20 +96,8 @@ def predict(model: MushroomNet, points: np.ndarray, spacing: float | None = TRAI
 def _nearest_voxel(points: np.ndarray, voxel: float, coords: np.ndarray, centroids: np.ndarray) -> np.ndarray:
     """Index of each point's own voxel in ``coords`` (rows batch, x, y, z) when occupied, else of the
     voxel with the nearest centroid."""
-    grid = np.floor(points / voxel).astype(np.int64)
-    low = np.minimum(grid.min(0), coords[:, 1:].min(0))
-    span = np.maximum(grid.max(0), coords[:, 1:].max(0)) - low + 1
-
-    def flat(cells: np.ndarray) -> np.ndarray:
-        cells = cells - low
-        return (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
-
-    voxel_keys = flat(coords[:, 1:])
-    order = np.argsort(voxel_keys)
-    keys = flat(grid)
-    slot = np.minimum(np.searchsorted(voxel_keys[order], keys), len(order) - 1)
-    index = order[slot]
-    missing = voxel_keys[index] != keys
+    index = cell_lookup(coords[:, 1:], np.floor(points / voxel).astype(np.int64))
+    missing = index < 0
     if missing.any():
         from scipy.spatial import cKDTree
 

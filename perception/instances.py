@@ -13,6 +13,8 @@ import numpy as np
 import sklearn
 from sklearn.cluster import DBSCAN, MeanShift, get_bin_seeds
 
+from capture.frames import cell_lookup
+
 METHODS = ("meanshift", "dbscan")
 SEEDINGS = ("peaks", "bins")
 
@@ -103,18 +105,7 @@ def peak_seeds(points: np.ndarray, bin_size: float, min_bin_freq: int = 1) -> np
     bins, counts = np.unique(np.round(points / bin_size).astype(np.int64), axis=0, return_counts=True)
     keep = counts >= min_bin_freq
     bins, counts = bins[keep], counts[keep]
-    if len(bins) == 0:
-        return np.zeros((0, points.shape[1]))
-    low = bins.min(0) - 1
-    span = bins.max(0) - low + 2
-
-    def key(cells: np.ndarray) -> np.ndarray:
-        cells = cells - low
-        return (cells[..., 0] * span[1] + cells[..., 1]) * span[2] + cells[..., 2]
-
-    keys = key(bins)  # np.unique sorted the rows, so the keys are sorted too
     offsets = np.concatenate([np.eye(3, dtype=np.int64), -np.eye(3, dtype=np.int64)])
-    neighbour_keys = key(bins[:, None, :] + offsets[None])
-    slot = np.minimum(np.searchsorted(keys, neighbour_keys), len(keys) - 1)
-    neighbour_counts = np.where(keys[slot] == neighbour_keys, counts[slot], 0)
+    neighbour = cell_lookup(bins, bins[:, None, :] + offsets[None])
+    neighbour_counts = np.where(neighbour >= 0, counts[neighbour], 0)
     return bins[counts >= neighbour_counts.max(1)] * bin_size

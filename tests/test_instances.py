@@ -87,3 +87,12 @@ def test_scattered_or_non_finite_candidates_make_no_caps_and_no_error():
     collapsed[:5] = np.nan
     labels = cluster(collapsed, collapsed, np.ones(40), voxel)
     assert np.all(labels[:5] == -1) and np.all(labels[5:] == 0)
+
+
+def test_cell_lookup_finds_equal_cells_and_nothing_else():
+    from capture.frames import cell_lookup
+
+    cells = np.array([[3, -2, 7], [0, 0, 0], [-5, 4, 1]])
+    queries = np.array([[[0, 0, 0], [-5, 4, 1]], [[3, -2, 7], [3, -2, 8]]])
+    np.testing.assert_array_equal(cell_lookup(cells, queries), [[1, 2], [0, -1]])
+    assert cell_lookup(cells[:0], queries).shape == (2, 2) and np.all(cell_lookup(cells[:0], queries) == -1)
