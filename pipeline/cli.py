@@ -109,9 +109,21 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
+def train_config(args: argparse.Namespace):
+    """The TrainConfig that ``mushroom-pose train`` runs with these arguments."""
+    from perception.train import TrainConfig
+
+    return TrainConfig(iterations=args.iterations, lr=args.lr, network=args.network, seed=args.seed,
+                       checkpoint_every=args.checkpoint_every, validate_every=args.validate_every,
+                       validation_scenes=args.validation_scenes, weight_existence=args.weight_existence,
+                       weight_residual=args.weight_residual, weight_orientation=args.weight_orientation,
+                       orientation_on_caps=args.orientation_on_caps,
+                       init_weights=str(Path(args.init).resolve()) if args.init else None)
+
+
 def cmd_train(args: argparse.Namespace) -> int:
     from perception.model import PRESETS as NETWORK_PRESETS
-    from perception.train import TrainConfig, train
+    from perception.train import train
 
     if args.network not in NETWORK_PRESETS:
         raise CliError(f"unknown network {args.network!r}; choose one of {sorted(NETWORK_PRESETS)}")
@@ -121,11 +133,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     run_dir = _writable_dir(args.out)
     if (run_dir / "checkpoint.pt").exists() and not args.resume:
         raise CliError(f"{run_dir} already holds a checkpoint: add --resume to continue it, or pick a new --out")
-    config = TrainConfig(iterations=args.iterations, lr=args.lr, network=args.network, seed=args.seed,
-                         checkpoint_every=args.checkpoint_every, validate_every=args.validate_every,
-                         validation_scenes=args.validation_scenes, weight_orientation=args.weight_orientation,
-                         orientation_on_caps=args.orientation_on_caps,
-                         init_weights=str(Path(args.init).resolve()) if args.init else None)
+    config = train_config(args)
     torch_threads(args.threads)
     try:
         weights = train(config, run_dir, resume=args.resume, device=args.device, progress=not args.quiet,
@@ -370,6 +378,10 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--validate-every", type=_positive(int), default=1000)
     train.add_argument("--validation-scenes", type=_non_negative_int, default=5,
                        help="val50 scenes scored at each validation (0: none)")
+    train.add_argument("--weight-existence", type=_positive(float), default=1.0,
+                       help="weight of the existence loss (default 1, the paper's)")
+    train.add_argument("--weight-residual", type=_positive(float), default=100.0,
+                       help="weight of the residual-centre loss (default 100, the paper's)")
     train.add_argument("--weight-orientation", type=_positive(float), default=1.0,
                        help="weight of the orientation loss (default 1, the paper's)")
     train.add_argument("--orientation-on-caps", action="store_true",

@@ -60,3 +60,26 @@ def test_synth_preview_png(tmp_path):
     assert image.shape == (600, 960, 3)
     # white caps and brown soil are both in the picture
     assert (image.min(axis=2) > 200).sum() > 500 and ((image[..., 0] > image[..., 2] + 30)).sum() > 10000
+
+
+def test_train_flags_set_the_loss_weights_and_defaults_are_the_papers():
+    from pipeline.cli import build_parser, train_config
+    from perception.train import TrainConfig
+
+    parse = build_parser().parse_args
+    default = train_config(parse(["train", "--out", "RUN"]))
+    paper = TrainConfig()
+    assert (default.weight_existence, default.weight_residual, default.weight_orientation,
+            default.orientation_on_caps) == (paper.weight_existence, paper.weight_residual,
+                                             paper.weight_orientation, paper.orientation_on_caps)
+    tuned = train_config(parse(["train", "--out", "RUN", "--weight-existence", "2", "--weight-residual", "50",
+                                "--weight-orientation", "10", "--orientation-on-caps"]))
+    assert (tuned.weight_existence, tuned.weight_residual, tuned.weight_orientation, tuned.orientation_on_caps) == \
+        (2.0, 50.0, 10.0, True)
+
+
+def test_a_loss_weight_that_is_not_positive_gives_one_line_and_exit_2(tmp_path):
+    result = run("train", "--out", str(tmp_path / "run"), "--weight-existence", "0")
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--weight-existence" in lines[0] and "positive" in lines[0], result.stderr
