@@ -36,10 +36,13 @@ class NetworkConfig:
     """Besides the constant 1, give each voxel the unit normal of the surface through the voxel
     centroids (oriented to +z, the bed normal): tilt shows in normals long before it shows in the
     occupancy of 4.5 mm voxels."""
+    offsets: bool = False
+    """Also give the centroid's place inside its voxel, scaled to [-1, 1) per axis: voxels drop where
+    in the 4.5 mm cell a point lies, and a small cap spans only 4-6 voxels."""
 
     @property
     def in_channels(self) -> int:
-        return 4 if self.normals else 1
+        return 1 + 3 * self.normals + 3 * self.offsets
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -56,14 +59,24 @@ PRESETS = {
     "fcgf": NetworkConfig(),
     "slim": NetworkConfig(channels=(32, 48, 64, 96), up_channels=(48, 48, 64, 64), first_kernel=3),
     "slim-n": NetworkConfig(channels=(32, 48, 64, 96), up_channels=(48, 48, 64, 64), first_kernel=3, normals=True),
+    "slim-no": NetworkConfig(channels=(32, 48, 64, 96), up_channels=(48, 48, 64, 64), first_kernel=3, normals=True,
+                             offsets=True),
 }
 
 
 def voxel_features(config: NetworkConfig, centroids: np.ndarray) -> np.ndarray:
     """(V, in_channels) float32 network input for voxels with these centroids (bed frame, metres)."""
-    ones = np.ones((len(centroids), 1), np.float32)
-    if not config.normals:
-        return ones
+    centroids = np.asarray(centroids, np.float64)
+    columns = [np.ones((len(centroids), 1), np.float32)]
+    if config.normals:
+        columns.append(_oriented_normals(config, centroids))
+    if config.offsets:
+        cell = centroids / config.voxel
+        columns.append((2.0 * (cell - np.floor(cell)) - 1.0).astype(np.float32))
+    return np.hstack(columns)
+
+
+def _oriented_normals(config: NetworkConfig, centroids: np.ndarray) -> np.ndarray:
     import open3d as o3d
 
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(centroids, np.float64)))
@@ -72,7 +85,7 @@ def voxel_features(config: NetworkConfig, centroids: np.ndarray) -> np.ndarray:
     if len(normals) != len(centroids):
         normals = np.tile(np.float32([0, 0, 1]), (len(centroids), 1))
     normals *= np.where(normals[:, 2:3] < 0, -1.0, 1.0).astype(np.float32)
-    return np.hstack([ones, normals])
+    return normals
 
 
 class ResBlock(nn.Module):

@@ -141,6 +141,20 @@ def test_normal_features_follow_the_surface_and_point_up():
     assert voxel_features(NetworkConfig(), plane).shape == (2000, 1)
 
 
+def test_offset_features_place_each_centroid_inside_its_voxel():
+    from perception.model import voxel_features
+
+    config = NetworkConfig(offsets=True)
+    # a voxel's lower corner maps to -1, its middle to 0 and a point just below the next voxel to almost 1
+    voxel = config.voxel
+    centroids = np.array([[3.0005, -1.9995, 0.0005], [3.5, -1.5, 0.5], [3.999, -1.001, 0.999]]) * voxel
+    features = voxel_features(config, centroids)
+    assert features.shape == (3, 4) and np.all(features[:, 0] == 1)
+    np.testing.assert_allclose(features[:, 1:], [[-0.999, -0.999, -0.999], [0, 0, 0], [0.998, 0.998, 0.998]], atol=1e-5)
+    both = voxel_features(NetworkConfig(normals=True, offsets=True), np.random.default_rng(1).normal(size=(50, 3)))
+    assert both.shape == (50, 7) and np.all((both[:, 4:] >= -1) & (both[:, 4:] < 1))
+
+
 def test_training_with_normal_features_runs(tmp_path, monkeypatch):
     monkeypatch.setitem(PRESETS, "tiny-n", NetworkConfig(**{**TINY.__dict__, "normals": True}))
     config = TrainConfig(iterations=2, network="tiny-n", validation_scenes=0, scene=SMALL_SCENES)
