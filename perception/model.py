@@ -79,7 +79,7 @@ def voxel_features(config: NetworkConfig, centroids: np.ndarray) -> np.ndarray:
 def _oriented_normals(config: NetworkConfig, centroids: np.ndarray) -> np.ndarray:
     import open3d as o3d
 
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(centroids, np.float64)))
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(centroids))
     cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3 * config.voxel, max_nn=16))
     normals = np.asarray(cloud.normals, np.float32)
     if len(normals) != len(centroids):
