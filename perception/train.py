@@ -44,6 +44,10 @@ class TrainConfig:
     orientation_on_caps: bool = False
     """Average the orientation MSE over cap voxels only (the paper's loss averages over every voxel,
     most of them soil with target 0, so the term that sets cap tilt is the weakest of the three)."""
+    cap_balance: bool = False
+    """Weight cap voxels so that every cap counts the same in the existence and orientation losses,
+    whatever its size: the caps the model misses or tilts wrongly are the small ones, a few voxels each.
+    The orientation loss is then over cap voxels only, as with ``orientation_on_caps``."""
     init_weights: str | None = None
     """Start from these weights (a model.pt) instead of random ones: fine-tuning with a new loss."""
     network: str = "slim"
@@ -92,22 +96,25 @@ def augmented_sample(config: TrainConfig, iteration: int) -> dict[str, np.ndarra
     rotations = rotation @ scene.rotations
     targets = encode(points, scene.instance[keep], scene.is_cap[keep], centers, rotations, scale * scene.scales)
     return {"iteration": iteration, "points": points.astype(np.float32), "existence": targets.existence,
-            "residual": targets.residual, "orientation": targets.orientation}
+            "residual": targets.residual, "orientation": targets.orientation,
+            "instance": np.where(targets.existence > 0, scene.instance[keep], -1).astype(np.int64)}
 
 
 def _producer(config: TrainConfig, network: NetworkConfig, start: int, stop: int, queue: mp.Queue) -> None:
     """Worker process: scenes, targets and network input for iterations ``start`` to ``stop``, in order."""
     torch.set_num_threads(1)
     for iteration in range(start, stop):
-        coords, existence, residual, orientation, centroids = voxel_targets(augmented_sample(config, iteration),
-                                                                           network.voxel)
+        coords, existence, residual, orientation, centroids, cap_weight = voxel_targets(
+            augmented_sample(config, iteration), network.voxel)
         queue.put({"iteration": iteration, "coords": coords.numpy(), "features": voxel_features(network, centroids),
-                   "existence": existence.numpy(), "residual": residual.numpy(), "orientation": orientation.numpy()})
+                   "existence": existence.numpy(), "residual": residual.numpy(), "orientation": orientation.numpy(),
+                   "cap_weight": cap_weight.numpy()})
 
 
 def voxel_targets(sample: dict, voxel: float):
     """Voxels and their targets (means over each voxel's points): coords, existence, residual
-    (LENGTH_UNITs), orientation, and the voxel centroids (metres, numpy)."""
+    (LENGTH_UNITs), orientation, the voxel centroids (metres, numpy), and the cap-balancing weight
+    (0 off caps; 1 / the voxels of the voxel's cap, scaled to mean 1 over cap voxels)."""
     from perception.detect import network_input
 
     coords, point_to_voxel, centroids = network_input(sample["points"], voxel)
@@ -125,26 +132,39 @@ def voxel_targets(sample: dict, voxel: float):
     residual = torch.where(existence[:, None] > 0, center_sum / existence.clamp(min=1e-6)[:, None]
                            - centroids.float(), torch.zeros(1)) / LENGTH_UNIT
     orientation = mean(sample["orientation"])[:, 0] / existence.clamp(min=1e-6)
+    # a voxel shared by two caps goes to the higher instance number
+    cap_of_voxel = torch.full((len(coords),), -1, dtype=torch.int64).scatter_reduce_(
+        0, point_to_voxel, torch.from_numpy(sample["instance"]).long(), "amax")
+    on_cap = cap_of_voxel >= 0
+    _, cap_index, voxels_per_cap = torch.unique(cap_of_voxel[on_cap], return_inverse=True, return_counts=True)
+    cap_weight = torch.zeros(len(coords))
+    cap_weight[on_cap] = on_cap.sum() / (len(voxels_per_cap) * voxels_per_cap[cap_index].float())
     return (coords, existence, residual * (existence[:, None] > 0), orientation * (existence > 0),
-            centroids.numpy())
+            centroids.numpy(), cap_weight)
 
 
 def loss_terms(output: torch.Tensor, existence: torch.Tensor, residual: torch.Tensor, orientation: torch.Tensor,
-               config: TrainConfig) -> dict[str, torch.Tensor]:
-    """The paper's multi-task loss: BCE on existence, MSE on residual centre and orientation."""
-    terms = {
-        "existence": F.binary_cross_entropy_with_logits(output[:, 0], existence),
-        "residual": F.mse_loss(output[:, 1:4], residual),
-        "orientation": (_masked_mse(output[:, 4], orientation, existence > 0) if config.orientation_on_caps
-                        else F.mse_loss(output[:, 4], orientation)),
-    }
+               config: TrainConfig, cap_weight: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """The paper's multi-task loss: BCE on existence, MSE on residual centre and orientation; with
+    ``config.cap_balance``, cap voxels weigh ``cap_weight`` (from ``voxel_targets``) instead of 1."""
+    if config.cap_balance:
+        if cap_weight is None:
+            raise ValueError("cap_balance needs the cap weights of voxel_targets")
+        voxel_weight = torch.where(existence > 0, cap_weight, torch.ones_like(cap_weight))
+        terms = {"existence": (voxel_weight * F.binary_cross_entropy_with_logits(output[:, 0], existence,
+                                                                                 reduction="none")).mean(),
+                 "orientation": _weighted_mse(output[:, 4], orientation, cap_weight)}
+    else:
+        terms = {"existence": F.binary_cross_entropy_with_logits(output[:, 0], existence),
+                 "orientation": (_weighted_mse(output[:, 4], orientation, (existence > 0).to(output.dtype))
+                                 if config.orientation_on_caps else F.mse_loss(output[:, 4], orientation))}
+    terms["residual"] = F.mse_loss(output[:, 1:4], residual)
     terms["total"] = (config.weight_existence * terms["existence"] + config.weight_residual * terms["residual"]
                       + config.weight_orientation * terms["orientation"])
     return terms
 
 
-def _masked_mse(prediction: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    weight = mask.to(prediction.dtype)
+def _weighted_mse(prediction: torch.Tensor, target: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
     return (weight * (prediction - target) ** 2).sum() / weight.sum().clamp(min=1.0)
 
 
@@ -244,7 +264,8 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
             assert sample["iteration"] == iteration
             tensors = {k: torch.from_numpy(v).to(device) for k, v in sample.items() if k != "iteration"}
             output = model(SparseTensor(tensors["features"], tensors["coords"]))
-            terms = loss_terms(output, tensors["existence"], tensors["residual"], tensors["orientation"], config)
+            terms = loss_terms(output, tensors["existence"], tensors["residual"], tensors["orientation"], config,
+                               tensors["cap_weight"])
             optimizer.zero_grad(set_to_none=True)
             terms["total"].backward()
             optimizer.step()

@@ -117,7 +117,7 @@ def train_config(args: argparse.Namespace):
                        checkpoint_every=args.checkpoint_every, validate_every=args.validate_every,
                        validation_scenes=args.validation_scenes, weight_existence=args.weight_existence,
                        weight_residual=args.weight_residual, weight_orientation=args.weight_orientation,
-                       orientation_on_caps=args.orientation_on_caps,
+                       orientation_on_caps=args.orientation_on_caps, cap_balance=args.cap_balance,
                        init_weights=str(Path(args.init).resolve()) if args.init else None)
 
 
@@ -387,6 +387,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="weight of the orientation loss (default 1, the paper's)")
     train.add_argument("--orientation-on-caps", action="store_true",
                        help="average the orientation loss over cap voxels only (default: every voxel, the paper's)")
+    train.add_argument("--cap-balance", action="store_true",
+                       help="weigh cap voxels so every cap counts the same in the existence and orientation losses, "
+                            "whatever its size (orientation then on caps only)")
     train.add_argument("--init", help="start from these weights (fine-tuning), e.g. perception/weights/default.pt")
     train.add_argument("--resume", action="store_true", help="continue the checkpoint in --out exactly")
     train.add_argument("--max-minutes", type=_positive(float),

@@ -70,12 +70,13 @@ def test_train_flags_set_the_loss_weights_and_defaults_are_the_papers():
     default = train_config(parse(["train", "--out", "RUN"]))
     paper = TrainConfig()
     assert (default.weight_existence, default.weight_residual, default.weight_orientation,
-            default.orientation_on_caps) == (paper.weight_existence, paper.weight_residual,
-                                             paper.weight_orientation, paper.orientation_on_caps)
+            default.orientation_on_caps, default.cap_balance) == (paper.weight_existence, paper.weight_residual,
+                                                                  paper.weight_orientation, paper.orientation_on_caps,
+                                                                  paper.cap_balance)
     tuned = train_config(parse(["train", "--out", "RUN", "--weight-existence", "2", "--weight-residual", "50",
-                                "--weight-orientation", "10", "--orientation-on-caps"]))
-    assert (tuned.weight_existence, tuned.weight_residual, tuned.weight_orientation, tuned.orientation_on_caps) == \
-        (2.0, 50.0, 10.0, True)
+                                "--weight-orientation", "10", "--orientation-on-caps", "--cap-balance"]))
+    assert (tuned.weight_existence, tuned.weight_residual, tuned.weight_orientation, tuned.orientation_on_caps,
+            tuned.cap_balance) == (2.0, 50.0, 10.0, True, True)
 
 
 def test_a_loss_weight_that_is_not_positive_gives_one_line_and_exit_2(tmp_path):

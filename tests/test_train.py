@@ -27,11 +27,12 @@ def test_augmented_samples_are_deterministic_and_consistent():
     cap = a["existence"] > 0
     assert cap.any() and np.all(a["residual"][~cap] == 0) and np.all(a["orientation"][~cap] == 0)
     assert np.all((a["orientation"] >= 0) & (a["orientation"] <= 1))
+    np.testing.assert_array_equal(a["instance"] >= 0, cap)
 
 
 def test_voxel_targets_are_point_targets_averaged_per_voxel():
     sample = augmented_sample(TrainConfig(scene=SMALL_SCENES), 1)
-    coords, existence, residual, orientation, centroids = voxel_targets(sample, 0.0045)
+    coords, existence, residual, orientation, centroids, _ = voxel_targets(sample, 0.0045)
     assert centroids.shape == (len(coords), 3)
     voxel_of = np.floor(sample["points"].astype(np.float64) / 0.0045).astype(np.int64)
     _, first, inverse, counts = np.unique(voxel_of, axis=0, return_index=True, return_inverse=True, return_counts=True)
@@ -63,6 +64,40 @@ def test_orientation_loss_on_caps_averages_over_cap_voxels_only():
     terms = loss_terms(output, existence, torch.zeros(3, 3), orientation, config)
     assert terms["orientation"].item() == pytest.approx((0.25 + 0.04) / 2, rel=1e-6)
     assert terms["total"].item() == pytest.approx(terms["existence"].item() + 10 * (0.25 + 0.04) / 2, rel=1e-6)
+
+
+def test_cap_balance_gives_every_cap_the_same_total_weight():
+    sample = augmented_sample(TrainConfig(scene=SMALL_SCENES), 2)
+    coords, existence, _, _, _, cap_weight = voxel_targets(sample, 0.0045)
+    voxel_of = np.floor(sample["points"].astype(np.float64) / 0.0045).astype(np.int64)
+    rows = {tuple(c): i for i, c in enumerate(coords[:, 1:].tolist())}
+    row_of_point = np.array([rows[tuple(v)] for v in voxel_of.tolist()])
+    caps = [set(row_of_point[sample["instance"] == k].tolist()) for k in np.unique(sample["instance"][sample["instance"] >= 0])]
+    assert len(caps) >= 3 and len({len(c) for c in caps}) > 1
+    on_cap = (existence > 0).numpy()
+    assert np.all(cap_weight.numpy()[~on_cap] == 0) and cap_weight[on_cap].mean().item() == pytest.approx(1.0, rel=1e-5)
+    unshared = [c - set().union(*(o for o in caps if o is not c)) for c in caps]
+    for cap, own in zip(caps, unshared):
+        # each voxel of a cap weighs 1 / (its cap's voxels), so a cap's voxels sum to the same total
+        np.testing.assert_allclose(cap_weight[sorted(own)].numpy() * len(cap), on_cap.sum() / len(caps), rtol=0.05)
+
+
+def test_cap_balanced_loss_averages_per_cap_then_over_caps():
+    # voxels 0-2: a 3-voxel cap; voxel 3: a 1-voxel cap; voxel 4: soil
+    output = torch.tensor([[0.0, 0, 0, 0, 0.5], [0.0, 0, 0, 0, 0.5], [0.0, 0, 0, 0, 0.5], [1.0, 0, 0, 0, 0.2],
+                           [-1.0, 0, 0, 0, 0.9]])
+    existence = torch.tensor([1.0, 1.0, 1.0, 1.0, 0.0])
+    orientation = torch.tensor([0.4, 0.4, 0.4, 0.0, 0.0])
+    cap_weight = torch.tensor([4 / 6, 4 / 6, 4 / 6, 4 / 2, 0.0])
+    config = TrainConfig(cap_balance=True, weight_orientation=10.0)
+    terms = loss_terms(output, existence, torch.zeros(5, 3), orientation, config, cap_weight)
+    assert terms["orientation"].item() == pytest.approx((0.01 + 0.04) / 2, rel=1e-6)
+    bce = lambda logit, target: -np.log(1 / (1 + np.exp(-logit))) if target else -np.log(1 - 1 / (1 + np.exp(-logit)))
+    per_cap = [np.mean([bce(0.0, 1)] * 3), bce(1.0, 1)]
+    # cap voxels carry the same total weight as before (4), now split evenly between the two caps
+    assert terms["existence"].item() == pytest.approx((2 * sum(per_cap) + bce(-1.0, 0)) / 5, rel=1e-6)
+    with pytest.raises(ValueError, match="cap weights"):
+        loss_terms(output, existence, torch.zeros(5, 3), orientation, config)
 
 
 def test_fine_tuning_starts_from_the_given_weights_and_adds_their_cost(tmp_path, tiny_network, monkeypatch):
