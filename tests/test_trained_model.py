@@ -23,6 +23,6 @@ def test_shipped_model_finds_the_caps_of_val50_beds():
 def test_shipped_model_is_small_and_says_how_it_was_made():
     assert DEFAULT_WEIGHTS.stat().st_size <= 30e6
     _, meta = load_weights(DEFAULT_WEIGHTS)
-    assert meta["network"]["normals"] is True and meta["iterations"] > 0
+    assert meta["network"]["normals"] is True and meta["network"]["offsets"] is True and meta["iterations"] > 0
     # the budget: at most 3 hours of training on 2 cores, both stages together
     assert 0 < meta["total_train_seconds"] <= 3 * 3600
