@@ -145,20 +145,21 @@ def voxel_targets(sample: dict, voxel: float):
 
 def loss_terms(output: torch.Tensor, existence: torch.Tensor, residual: torch.Tensor, orientation: torch.Tensor,
                config: TrainConfig, cap_weight: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-    """The paper's multi-task loss: BCE on existence, MSE on residual centre and orientation; with
-    ``config.cap_balance``, cap voxels weigh ``cap_weight`` (from ``voxel_targets``) instead of 1."""
+    """The paper's multi-task loss: BCE on existence, MSE on residual centre and orientation. Cap voxels
+    weigh 1, or ``cap_weight`` (from ``voxel_targets``) with ``config.cap_balance``."""
+    on_cap = existence > 0
     if config.cap_balance:
         if cap_weight is None:
             raise ValueError("cap_balance needs the cap weights of voxel_targets")
-        voxel_weight = torch.where(existence > 0, cap_weight, torch.ones_like(cap_weight))
-        terms = {"existence": (voxel_weight * F.binary_cross_entropy_with_logits(output[:, 0], existence,
-                                                                                 reduction="none")).mean(),
-                 "orientation": _weighted_mse(output[:, 4], orientation, cap_weight)}
     else:
-        terms = {"existence": F.binary_cross_entropy_with_logits(output[:, 0], existence),
-                 "orientation": (_weighted_mse(output[:, 4], orientation, (existence > 0).to(output.dtype))
-                                 if config.orientation_on_caps else F.mse_loss(output[:, 4], orientation))}
-    terms["residual"] = F.mse_loss(output[:, 1:4], residual)
+        cap_weight = on_cap.to(output.dtype)
+    voxel_weight = torch.where(on_cap, cap_weight, torch.ones_like(cap_weight))
+    bce = F.binary_cross_entropy_with_logits(output[:, 0], existence, reduction="none")
+    terms = {"existence": (voxel_weight * bce).mean(),
+             "residual": F.mse_loss(output[:, 1:4], residual),
+             "orientation": (_weighted_mse(output[:, 4], orientation, cap_weight)
+                             if config.orientation_on_caps or config.cap_balance
+                             else F.mse_loss(output[:, 4], orientation))}
     terms["total"] = (config.weight_existence * terms["existence"] + config.weight_residual * terms["residual"]
                       + config.weight_orientation * terms["orientation"])
     return terms

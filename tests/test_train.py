@@ -33,6 +33,13 @@ def test_augmented_samples_are_deterministic_and_consistent():
         assert np.ptp(centres[a["instance"] == k], axis=0).max() < 1e-5
 
 
+def _row_of_point(coords: torch.Tensor, points: np.ndarray, voxel: float) -> np.ndarray:
+    """The row of ``coords`` (batch, x, y, z) holding each point's voxel, found independently of the code under test."""
+    voxel_of = np.floor(points.astype(np.float64) / voxel).astype(np.int64)
+    rows = {tuple(c): i for i, c in enumerate(coords[:, 1:].tolist())}
+    return np.array([rows[tuple(v)] for v in voxel_of.tolist()])
+
+
 def test_voxel_targets_are_point_targets_averaged_per_voxel():
     sample = augmented_sample(TrainConfig(scene=SMALL_SCENES), 1)
     coords, existence, residual, orientation, centroids, _ = voxel_targets(sample, 0.0045)
@@ -41,9 +48,9 @@ def test_voxel_targets_are_point_targets_averaged_per_voxel():
     _, first, inverse, counts = np.unique(voxel_of, axis=0, return_index=True, return_inverse=True, return_counts=True)
     assert len(coords) == len(first)
     single = np.flatnonzero((counts == 1) & (sample["existence"][first] > 0))
-    rows = {tuple(c): i for i, c in enumerate(coords[:, 1:].tolist())}
+    row_of_point = _row_of_point(coords, sample["points"], 0.0045)
     for v in single[:50]:
-        row = rows[tuple(voxel_of[first[v]])]
+        row = row_of_point[first[v]]
         assert existence[row] == 1
         np.testing.assert_allclose(residual[row].numpy() * LENGTH_UNIT, sample["residual"][first[v]], atol=1e-6)
         np.testing.assert_allclose(orientation[row].item(), sample["orientation"][first[v]], atol=1e-6)
@@ -72,10 +79,9 @@ def test_orientation_loss_on_caps_averages_over_cap_voxels_only():
 def test_cap_balance_gives_every_cap_the_same_total_weight():
     sample = augmented_sample(TrainConfig(scene=SMALL_SCENES), 2)
     coords, existence, _, _, _, cap_weight = voxel_targets(sample, 0.0045)
-    voxel_of = np.floor(sample["points"].astype(np.float64) / 0.0045).astype(np.int64)
-    rows = {tuple(c): i for i, c in enumerate(coords[:, 1:].tolist())}
-    row_of_point = np.array([rows[tuple(v)] for v in voxel_of.tolist()])
-    caps = [set(row_of_point[sample["instance"] == k].tolist()) for k in np.unique(sample["instance"][sample["instance"] >= 0])]
+    row_of_point = _row_of_point(coords, sample["points"], 0.0045)
+    instances = np.unique(sample["instance"][sample["instance"] >= 0])
+    caps = [set(row_of_point[sample["instance"] == k].tolist()) for k in instances]
     assert len(caps) >= 3 and len({len(c) for c in caps}) > 1
     on_cap = (existence > 0).numpy()
     assert np.all(cap_weight.numpy()[~on_cap] == 0) and cap_weight[on_cap].mean().item() == pytest.approx(1.0, rel=1e-5)
