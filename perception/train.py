@@ -15,7 +15,6 @@ import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 import rerun as rr
@@ -49,11 +48,6 @@ class TrainConfig:
     """Weight cap voxels so that every cap counts the same in the existence and orientation losses,
     whatever its size: the caps the model misses or tilts wrongly are the small ones, a few voxels each.
     The orientation loss is then over cap voxels only, as with ``orientation_on_caps``."""
-    weight_axis: float = 0.0
-    """Weight of the cap-axis loss: for each cap, the axis the pose fit (perception/pose.py) would read
-    from the predicted orientation values about the true centre, against the axis it reads from the
-    targets, as 1 - cosine. The per-voxel MSE treats every voxel alone; this
-    term scores what the pose fit makes of them together, the quantity we are measured on."""
     init_weights: str | None = None
     """Start from these weights (a model.pt) instead of random ones: fine-tuning with a new loss."""
     network: str = "slim"
@@ -110,29 +104,17 @@ def _producer(config: TrainConfig, network: NetworkConfig, start: int, stop: int
     """Worker process: scenes, targets and network input for iterations ``start`` to ``stop``, in order."""
     torch.set_num_threads(1)
     for iteration in range(start, stop):
-        targets = voxel_targets(augmented_sample(config, iteration), network.voxel)
-        queue.put({"iteration": iteration, "features": voxel_features(network, targets.centroids),
-                   **{name: value.numpy() for name, value in targets._asdict().items() if name != "centroids"}})
+        coords, existence, residual, orientation, centroids, cap_weight = voxel_targets(
+            augmented_sample(config, iteration), network.voxel)
+        queue.put({"iteration": iteration, "coords": coords.numpy(), "features": voxel_features(network, centroids),
+                   "existence": existence.numpy(), "residual": residual.numpy(), "orientation": orientation.numpy(),
+                   "cap_weight": cap_weight.numpy()})
 
 
-class VoxelTargets(NamedTuple):
-    """A training scene's voxels and their targets (means over each voxel's points)."""
-
-    coords: torch.Tensor
-    existence: torch.Tensor
-    residual: torch.Tensor
-    """Cap centre minus voxel centroid, in LENGTH_UNITs; 0 off caps."""
-    orientation: torch.Tensor
-    centroids: np.ndarray
-    """Metres."""
-    cap_weight: torch.Tensor
-    """0 off caps; 1 / the voxels of the voxel's cap, scaled to mean 1 over cap voxels."""
-    cap: torch.Tensor
-    """The voxel's cap, numbered 0.. within the scene; -1 off caps."""
-
-
-def voxel_targets(sample: dict, voxel: float) -> VoxelTargets:
-    """The voxels of ``sample`` (from ``augmented_sample``) and their targets."""
+def voxel_targets(sample: dict, voxel: float):
+    """Voxels and their targets (means over each voxel's points): coords, existence, residual
+    (LENGTH_UNITs), orientation, the voxel centroids (metres, numpy), and the cap-balancing weight
+    (0 off caps; 1 / the voxels of the voxel's cap, scaled to mean 1 over cap voxels)."""
     from perception.detect import network_input
 
     coords, point_to_voxel, centroids = network_input(sample["points"], voxel)
@@ -157,18 +139,14 @@ def voxel_targets(sample: dict, voxel: float) -> VoxelTargets:
     _, cap_index, voxels_per_cap = torch.unique(cap_of_voxel[on_cap], return_inverse=True, return_counts=True)
     cap_weight = torch.zeros(len(coords))
     cap_weight[on_cap] = on_cap.sum() / (len(voxels_per_cap) * voxels_per_cap[cap_index].float())
-    cap = torch.full((len(coords),), -1, dtype=torch.int64)
-    cap[on_cap] = cap_index
-    return VoxelTargets(coords, existence, residual * (existence[:, None] > 0), orientation * (existence > 0),
-                        centroids.numpy(), cap_weight, cap)
+    return (coords, existence, residual * (existence[:, None] > 0), orientation * (existence > 0),
+            centroids.numpy(), cap_weight)
 
 
 def loss_terms(output: torch.Tensor, existence: torch.Tensor, residual: torch.Tensor, orientation: torch.Tensor,
-               config: TrainConfig, cap_weight: torch.Tensor | None = None,
-               cap: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+               config: TrainConfig, cap_weight: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """The paper's multi-task loss: BCE on existence, MSE on residual centre and orientation. Cap voxels
-    weigh 1, or ``cap_weight`` (from ``voxel_targets``) with ``config.cap_balance``. With
-    ``config.weight_axis``, also the cap-axis loss, which needs ``cap`` from ``voxel_targets``."""
+    weigh 1, or ``cap_weight`` (from ``voxel_targets``) with ``config.cap_balance``."""
     on_cap = existence > 0
     if config.cap_balance:
         if cap_weight is None:
@@ -184,41 +162,7 @@ def loss_terms(output: torch.Tensor, existence: torch.Tensor, residual: torch.Te
                              else F.mse_loss(output[:, 4], orientation))}
     terms["total"] = (config.weight_existence * terms["existence"] + config.weight_residual * terms["residual"]
                       + config.weight_orientation * terms["orientation"])
-    if config.weight_axis:
-        if cap is None:
-            raise ValueError("weight_axis needs the caps of voxel_targets")
-        terms["axis"] = axis_loss(output[:, 4], orientation, -residual, cap)
-        terms["total"] = terms["total"] + config.weight_axis * terms["axis"]
     return terms
-
-
-MIN_AXIS_VOXELS = 5
-"""A cap needs this many voxels for its axis least squares (4 unknowns) to be posed at all."""
-
-
-def axis_loss(predicted: torch.Tensor, target: torch.Tensor, offsets: torch.Tensor, cap: torch.Tensor) -> torch.Tensor:
-    """Mean over caps of 1 - cos(predicted axis, target axis), each axis read from orientation values
-    the way the pose fit reads it: the least squares [offset, 1] (lambda, b) = orientation over the
-    cap's voxels, ``offsets`` being voxel minus true cap centre. Caps under MIN_AXIS_VOXELS are left
-    out; 0 when no cap is left."""
-    on_cap = cap >= 0
-    if not on_cap.any():
-        return predicted.sum() * 0.0
-    index = cap[on_cap]
-    k = int(index.max()) + 1
-    design = torch.cat([offsets[on_cap], torch.ones(len(index), 1, dtype=offsets.dtype)], 1).double()
-    normal = torch.zeros(k, 4, 4, dtype=torch.float64).index_add_(0, index, design[:, :, None] * design[:, None, :])
-    posed = torch.bincount(index, minlength=k) >= MIN_AXIS_VOXELS
-    if not posed.any():
-        return predicted.sum() * 0.0
-    normal = normal[posed] + 1e-9 * torch.eye(4, dtype=torch.float64)
-
-    def axes(values: torch.Tensor) -> torch.Tensor:
-        rhs = torch.zeros(k, 4, dtype=torch.float64).index_add_(0, index, design * values[on_cap, None].double())
-        return torch.linalg.solve(normal, rhs[posed])[:, :3]
-
-    cosine = F.cosine_similarity(axes(predicted), axes(target), dim=1, eps=1e-12)
-    return (1.0 - cosine).mean().to(predicted.dtype)
 
 
 def _weighted_mse(prediction: torch.Tensor, target: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
@@ -297,7 +241,7 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
     writer = csv.writer(history)
     if start == 0:
         writer.writerow(["iteration", "lr", "total", "existence", "residual", "orientation", "seconds",
-                         "val_ap25", "val_ap50", "val_angle_deg", "val_scale_err", "axis"])
+                         "val_ap25", "val_ap50", "val_angle_deg", "val_scale_err"])
     model.train()
     bar = tqdm(total=config.iterations, initial=start, desc="train", unit="it", disable=not progress,
                dynamic_ncols=True)
@@ -322,7 +266,7 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
             tensors = {k: torch.from_numpy(v).to(device) for k, v in sample.items() if k != "iteration"}
             output = model(SparseTensor(tensors["features"], tensors["coords"]))
             terms = loss_terms(output, tensors["existence"], tensors["residual"], tensors["orientation"], config,
-                               tensors["cap_weight"], tensors["cap"])
+                               tensors["cap_weight"])
             optimizer.zero_grad(set_to_none=True)
             terms["total"].backward()
             optimizer.step()
@@ -344,10 +288,9 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
                     for name in ("ap25", "ap50", "angle_deg", "scale_err"):
                         rec.log(f"stats/val/{name}", rr.Scalars(metrics[name]))
             writer.writerow(row + [metrics.get("ap25", ""), metrics.get("ap50", ""), metrics.get("angle_deg", ""),
-                                   metrics.get("scale_err", ""), values.get("axis", "")])
+                                   metrics.get("scale_err", "")])
             bar.set_postfix(loss=f"{values['total']:.3f}", ex=f"{values['existence']:.3f}",
-                            res=f"{values['residual']:.4f}", ori=f"{values['orientation']:.4f}",
-                            **({"axis": f"{values['axis']:.4f}"} if "axis" in values else {}), refresh=False)
+                            res=f"{values['residual']:.4f}", ori=f"{values['orientation']:.4f}", refresh=False)
             bar.update(1)
             if (iteration + 1) % config.checkpoint_every == 0:
                 history.flush()

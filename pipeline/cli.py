@@ -39,14 +39,14 @@ def _writable_file(path: str | None) -> Path | None:
     return file
 
 
-def _positive(kind, allow_zero: bool = False):
+def _positive(kind):
     def parse(text: str):
         try:
             value = kind(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-        if value < 0 or (value == 0 and not allow_zero):
-            raise argparse.ArgumentTypeError(f"must be {'non-negative' if allow_zero else 'positive'}, got {text}")
+        if value <= 0:
+            raise argparse.ArgumentTypeError(f"must be positive, got {text}")
         return value
     return parse
 
@@ -118,7 +118,7 @@ def train_config(args: argparse.Namespace):
                        validation_scenes=args.validation_scenes, weight_existence=args.weight_existence,
                        weight_residual=args.weight_residual, weight_orientation=args.weight_orientation,
                        orientation_on_caps=args.orientation_on_caps, cap_balance=args.cap_balance,
-                       weight_axis=args.weight_axis, init_weights=str(Path(args.init).resolve()) if args.init else None)
+                       init_weights=str(Path(args.init).resolve()) if args.init else None)
 
 
 def cmd_train(args: argparse.Namespace) -> int:
@@ -390,9 +390,6 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--cap-balance", action="store_true",
                        help="weigh cap voxels so every cap counts the same in the existence and orientation losses, "
                             "whatever its size (orientation then on caps only)")
-    train.add_argument("--weight-axis", type=_positive(float, allow_zero=True), default=0.0,
-                       help="weight of the cap-axis loss: 1 - cosine between the axis the pose fit reads from the "
-                            "predicted orientation values of a cap and the true one (default 0: off, the paper's loss)")
     train.add_argument("--init", help="start from these weights (fine-tuning), e.g. perception/weights/default.pt")
     train.add_argument("--resume", action="store_true", help="continue the checkpoint in --out exactly")
     train.add_argument("--max-minutes", type=_positive(float),

@@ -7,8 +7,7 @@ import torch
 from perception.model import LENGTH_UNIT, PRESETS, MushroomNet, NetworkConfig
 from perception.sparse import SparseTensor
 from perception.synthetic.scene import SceneConfig
-from perception.train import (TrainConfig, augmented_sample, axis_loss, load_weights, loss_terms, train,
-                              voxel_targets)
+from perception.train import TrainConfig, augmented_sample, load_weights, loss_terms, train, voxel_targets
 
 TINY = NetworkConfig(channels=(8, 8, 8, 8), up_channels=(8, 8, 8, 8), first_kernel=3, head_hidden=(8, 8))
 SMALL_SCENES = SceneConfig(mushrooms=(3, 5))
@@ -43,7 +42,7 @@ def _row_of_point(coords: torch.Tensor, points: np.ndarray, voxel: float) -> np.
 
 def test_voxel_targets_are_point_targets_averaged_per_voxel():
     sample = augmented_sample(TrainConfig(scene=SMALL_SCENES), 1)
-    coords, existence, residual, orientation, centroids, _, _ = voxel_targets(sample, 0.0045)
+    coords, existence, residual, orientation, centroids, _ = voxel_targets(sample, 0.0045)
     assert centroids.shape == (len(coords), 3)
     voxel_of = np.floor(sample["points"].astype(np.float64) / 0.0045).astype(np.int64)
     _, first, inverse, counts = np.unique(voxel_of, axis=0, return_index=True, return_inverse=True, return_counts=True)
@@ -79,8 +78,7 @@ def test_orientation_loss_on_caps_averages_over_cap_voxels_only():
 
 def test_cap_balance_gives_every_cap_the_same_total_weight():
     sample = augmented_sample(TrainConfig(scene=SMALL_SCENES), 2)
-    targets = voxel_targets(sample, 0.0045)
-    coords, existence, cap_weight = targets.coords, targets.existence, targets.cap_weight
+    coords, existence, _, _, _, cap_weight = voxel_targets(sample, 0.0045)
     row_of_point = _row_of_point(coords, sample["points"], 0.0045)
     instances = np.unique(sample["instance"][sample["instance"] >= 0])
     caps = [set(row_of_point[sample["instance"] == k].tolist()) for k in instances]
@@ -93,58 +91,9 @@ def test_cap_balance_gives_every_cap_the_same_total_weight():
     labels, voxels_per_cap = np.unique(cap_of_row[on_cap], return_counts=True)
     expected = on_cap.sum() / (len(labels) * voxels_per_cap[np.searchsorted(labels, cap_of_row[on_cap])])
     np.testing.assert_allclose(cap_weight[on_cap].numpy(), expected, rtol=1e-5)
-    # the cap number of a voxel names the same grouping
-    cap = targets.cap.numpy()
-    assert np.all(cap[~on_cap] == -1)
-    pairs = set(zip(cap[on_cap].tolist(), cap_of_row[on_cap].tolist()))
-    assert len(pairs) == len(labels) == len({a for a, _ in pairs})
     soil_only = {**sample, "existence": np.zeros_like(sample["existence"]),
                  "instance": np.full_like(sample["instance"], -1)}
-    soil_targets = voxel_targets(soil_only, 0.0045)
-    assert torch.count_nonzero(soil_targets.cap_weight) == 0 and torch.all(soil_targets.cap == -1)
-
-
-def _tilted(axis_x: float, axis_y: float) -> np.ndarray:
-    axis = np.array([axis_x, axis_y, 1.0])
-    return axis / np.linalg.norm(axis)
-
-
-def test_axis_loss_is_one_minus_the_cosine_between_the_axes_the_values_encode():
-    rng = np.random.default_rng(0)
-    true_axes = [_tilted(0.3, -0.2), _tilted(-0.5, 0.1)]
-    other_axes = [_tilted(0.1, 0.2), _tilted(-0.5, 0.1)]
-    offsets = rng.normal(0, 0.1, (20, 3))
-    cap = np.repeat([0, 1], 10)
-    # orientation values are (axis . offset) / s_z, up to a constant when the centre is off
-    target = np.einsum("nd,nd->n", offsets, np.array(true_axes)[cap]) / 0.15
-    predicted = np.einsum("nd,nd->n", offsets, np.array(other_axes)[cap]) / 0.2 + 0.05
-    expected = np.mean([1 - a @ b for a, b in zip(true_axes, other_axes)])
-    as_tensor = lambda values: torch.tensor(values, dtype=torch.float32)
-    loss = axis_loss(as_tensor(predicted), as_tensor(target), as_tensor(offsets), torch.tensor(cap))
-    assert expected > 0.01 and loss.item() == pytest.approx(expected, rel=1e-4)
-    assert axis_loss(as_tensor(target), as_tensor(target), as_tensor(offsets), torch.tensor(cap)).item() < 1e-6
-
-
-def test_axis_loss_leaves_out_caps_too_small_to_pose_and_trains_only_cap_voxels():
-    rng = np.random.default_rng(1)
-    offsets = torch.tensor(rng.normal(0, 0.1, (12, 3)), dtype=torch.float32)
-    cap = torch.tensor([0] * 8 + [1] * 3 + [-1])
-    target = offsets @ torch.tensor(_tilted(0.2, 0.0), dtype=torch.float32)
-    predicted = (offsets @ torch.tensor(_tilted(0.0, 0.4), dtype=torch.float32)).requires_grad_()
-    loss = axis_loss(predicted, target, offsets, cap)
-    assert loss.item() == pytest.approx(1 - _tilted(0.2, 0.0) @ _tilted(0.0, 0.4), rel=1e-4)
-    loss.backward()
-    assert torch.all(predicted.grad[:8] != 0) and torch.all(predicted.grad[8:] == 0)
-    assert axis_loss(predicted, target, offsets, torch.full((12,), -1)).item() == 0.0
-    output = torch.zeros(12, 5)
-    output[:, 4] = predicted.detach()
-    existence = (cap >= 0).float()
-    config = TrainConfig(weight_axis=3.0, orientation_on_caps=True)
-    terms = loss_terms(output, existence, -offsets, target, config, cap=cap)
-    without = loss_terms(output, existence, -offsets, target, TrainConfig(orientation_on_caps=True))
-    assert terms["total"].item() == pytest.approx(without["total"].item() + 3 * loss.item(), rel=1e-5)
-    with pytest.raises(ValueError, match="caps of voxel_targets"):
-        loss_terms(output, existence, -offsets, target, config)
+    assert torch.count_nonzero(voxel_targets(soil_only, 0.0045)[5]) == 0
 
 
 def test_cap_balanced_loss_averages_per_cap_then_over_caps():
