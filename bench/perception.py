@@ -5,7 +5,7 @@ baseline is scikit-learn MeanShift without bin seeding (every point a seed), tim
 on the same inputs, and beside it MeanShift seeded by scikit-learn's bins instead of our peaks.
 Targets: end to end <= 400 ms for a 0.5 m x 0.5 m bed (about 20 k voxels),
 pose <= 5 ms for 45 caps.
-Usage: python bench/perception.py [--model PATH] [--scenes N] [--visibility hpr|camera]
+Usage: python bench/perception.py [--model PATH] [--scenes N] [--visibility hpr|camera] [--zoom Z]
 """
 import sys
 from pathlib import Path
@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from sklearn.cluster import MeanShift
 
-from perception.detect import DEFAULT_WEIGHTS, network_input
+from perception.detect import DEFAULT_WEIGHTS, INFERENCE_ZOOM, network_input
 from perception.instances import ClusterConfig, cluster
 from perception.model import LENGTH_UNIT, voxel_features
 from perception.pose import fit_caps
@@ -36,6 +36,8 @@ def main() -> None:
     parser.add_argument("--model", type=Path, default=DEFAULT_WEIGHTS)
     parser.add_argument("--scenes", type=int, default=20)
     parser.add_argument("--visibility", default="hpr")
+    parser.add_argument("--zoom", type=float, default=INFERENCE_ZOOM,
+                        help=f"scale the network reads clouds at (default {INFERENCE_ZOOM}, the shipped one)")
     parser.add_argument("--baseline-scenes", type=int, default=5, help="scenes for the slow baseline clustering")
     args = parser.parse_args()
     torch.set_num_threads(2)
@@ -46,18 +48,20 @@ def main() -> None:
                             "bins")}
     for index, scene in enumerate([scenes[0]] + scenes):
         t0 = time.perf_counter()
-        coords, point_to_voxel, centroids = network_input(scene.points, voxel)
+        # the network reads the zoomed cloud, clustering and pose work in metres (perception.detect.predict)
+        coords, point_to_voxel, zoomed = network_input(args.zoom * scene.points, voxel)
         t1 = time.perf_counter()
         with torch.no_grad():
-            features = torch.from_numpy(voxel_features(model.config, centroids.numpy()))
-            out = model(SparseTensor(features, coords)).double()
-        existence = torch.sigmoid(out[:, 0]).numpy()
-        centers = (centroids + out[:, 1:4] * LENGTH_UNIT).numpy()
-        orientation = out[:, 4].clamp(0, 1).numpy()
+            features = torch.from_numpy(voxel_features(model.config, zoomed.numpy()))
+            out = model(SparseTensor(features, coords)).double().numpy()
+        existence = 1.0 / (1.0 + np.exp(-out[:, 0]))
+        centroids = zoomed.numpy() / args.zoom
+        centers = centroids + out[:, 1:4] * LENGTH_UNIT / args.zoom
+        orientation = np.clip(out[:, 4], 0, 1)
         t2 = time.perf_counter()
-        labels = cluster(centroids.numpy(), centers, existence, voxel, ClusterConfig())
+        labels = cluster(centroids, centers, existence, voxel, ClusterConfig())
         t3 = time.perf_counter()
-        fit = fit_caps(centroids.numpy(), centers, orientation, existence, labels)
+        fit = fit_caps(centroids, centers, orientation, existence, labels)
         t4 = time.perf_counter()
         if index == 0:
             continue
@@ -70,10 +74,11 @@ def main() -> None:
             MeanShift(bandwidth=ClusterConfig().bandwidth_voxels * voxel).fit(candidates)
             rows["baseline"].append(time.perf_counter() - t5)
             t6 = time.perf_counter()
-            cluster(centroids.numpy(), centers, existence, voxel, ClusterConfig(seeding="bins"))
+            cluster(centroids, centers, existence, voxel, ClusterConfig(seeding="bins"))
             rows["bins"].append(time.perf_counter() - t6)
     ms = {k: 1000 * np.median(v) for k, v in rows.items() if k not in ("voxels", "caps")}
-    print(f"model {args.model.name} (voxel {1000 * voxel:.1f} mm), {len(rows['total'])} val50 scenes "
+    print(f"model {args.model.name} (voxel {1000 * voxel:.1f} mm, read at zoom {args.zoom}), "
+          f"{len(rows['total'])} val50 scenes "
           f"({args.visibility}), 2 threads; median voxels {np.median(rows['voxels']):.0f}, "
           f"caps {np.median(rows['caps']):.0f} (max {max(rows['caps'])})")
     for key in ("voxelise", "network", "instances", "pose", "total"):

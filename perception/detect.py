@@ -20,6 +20,12 @@ from perception.synthetic.scene import SceneConfig
 DEFAULT_WEIGHTS = __import__("pathlib").Path(__file__).parent / "weights" / "default.pt"
 TRAINING_SPACING = SceneConfig().voxel
 """Point spacing of the synthetic training scenes (metres): the density the network expects."""
+INFERENCE_ZOOM = 1.1
+"""The network reads a cloud scaled up by this factor, i.e. at its voxel / 1.1: a small cap, the kind
+it misses or tilts wrongly, then spans more voxels, and 1.1 is still inside training's scale jitter.
+Clustering stays at the model's voxel in the cloud's own metres: caps keep their real size. Shipped
+model, val50, MeanShift, zoom 1 / 1.1: AP@25 98.1 / 98.8 %, AP@50 90.2 / 92.7 %, angle 6.27 / 5.91
+degrees, for about 1.2 times the voxels (docs in the model card)."""
 
 
 @dataclass(frozen=True)
@@ -57,7 +63,8 @@ def network_input(points: np.ndarray, voxel: float, device: torch.device | str =
 
 
 @torch.no_grad()
-def predict(model: MushroomNet, points: np.ndarray, spacing: float | None = TRAINING_SPACING) -> VoxelPrediction:
+def predict(model: MushroomNet, points: np.ndarray, spacing: float | None = TRAINING_SPACING,
+            zoom: float = INFERENCE_ZOOM) -> VoxelPrediction:
     """The network's encoding for a cloud in the bed frame; ``point_to_voxel`` covers every input point.
 
     The network was trained on clouds with one point per ``spacing`` (the synthetic scenes' voxel), a
@@ -66,7 +73,8 @@ def predict(model: MushroomNet, points: np.ndarray, spacing: float | None = TRAI
     cloud with over twice as many points as ``spacing`` cells (training scenes have 1-1.5) is first
     thinned to one point per cell (None: never), and points whose voxel lost its points take the
     prediction of the nearest kept voxel. Clouds at training density are used as they are (thinning
-    them cost 3 points of AP@25 on val50).
+    them cost 3 points of AP@25 on val50). The network then reads the cloud scaled by ``zoom``; what
+    it returns is in the cloud's own metres again.
     """
     points = np.asarray(points, np.float64)
     if len(points) == 0:
@@ -78,19 +86,21 @@ def predict(model: MushroomNet, points: np.ndarray, spacing: float | None = TRAI
         if len(points) > 2 * len(representatives):
             kept = representatives
     device = next(model.parameters()).device
-    coords, kept_to_voxel, centroids = network_input(points[kept], model.config.voxel, device)
+    coords, kept_to_voxel, zoomed_centroids = network_input(zoom * points[kept], model.config.voxel, device)
     model.eval()
-    features = torch.from_numpy(voxel_features(model.config, centroids.numpy())).to(device)
+    features = torch.from_numpy(voxel_features(model.config, zoomed_centroids.numpy())).to(device)
     out = model(SparseTensor(features, coords)).double().cpu()
     existence = torch.sigmoid(out[:, 0]).numpy()
-    centers = (centroids + out[:, 1:4] * LENGTH_UNIT).numpy()
+    centroids = zoomed_centroids.numpy() / zoom
+    centers = centroids + out[:, 1:4].numpy() * LENGTH_UNIT / zoom
     orientation = out[:, 4].clamp(0.0, 1.0).numpy()
     if len(kept) == len(points):
         point_to_voxel = kept_to_voxel.numpy()
     else:
-        point_to_voxel = _nearest_voxel(points, model.config.voxel, coords.cpu().numpy(), centroids.numpy())
+        point_to_voxel = _nearest_voxel(zoom * points, model.config.voxel, coords.cpu().numpy(),
+                                        zoomed_centroids.numpy())
         point_to_voxel[kept] = kept_to_voxel.numpy()
-    return VoxelPrediction(centroids.numpy(), existence, centers, orientation, point_to_voxel)
+    return VoxelPrediction(centroids, existence, centers, orientation, point_to_voxel)
 
 
 def _nearest_voxel(points: np.ndarray, voxel: float, coords: np.ndarray, centroids: np.ndarray) -> np.ndarray:

@@ -22,8 +22,8 @@ def test_a_dense_cloud_is_thinned_to_the_training_spacing_and_every_point_keeps_
     kept = voxel_representatives(dense, TRAINING_SPACING)
     assert len(dense) > 2 * len(kept)
 
-    thinned = predict(model, dense)
-    direct = predict(model, dense[kept], spacing=None)
+    thinned = predict(model, dense, zoom=1.0)
+    direct = predict(model, dense[kept], spacing=None, zoom=1.0)
     assert np.array_equal(thinned.centroids, direct.centroids)
     assert np.allclose(thinned.existence, direct.existence) and np.allclose(thinned.centers, direct.centers)
     assert np.array_equal(thinned.point_to_voxel[kept], direct.point_to_voxel)
@@ -45,3 +45,16 @@ def test_a_cloud_at_training_density_is_used_as_it_is():
     model = MushroomNet(TINY).eval()
     points = generate_scene(3, SceneConfig(mushrooms=(5, 5))).points
     assert np.array_equal(predict(model, points).existence, predict(model, points, spacing=None).existence)
+
+
+def test_zoom_is_the_same_network_on_the_scaled_cloud_with_answers_in_the_cloud_metres():
+    torch.manual_seed(0)
+    model = MushroomNet(TINY).eval()
+    points = generate_scene(4, SceneConfig(mushrooms=(5, 5))).points
+    zoomed = predict(model, points, zoom=1.1)
+    scaled = predict(model, 1.1 * points, spacing=None, zoom=1.0)
+    np.testing.assert_allclose(zoomed.centroids * 1.1, scaled.centroids, atol=1e-12)
+    np.testing.assert_allclose(zoomed.centers * 1.1, scaled.centers, atol=1e-9)
+    np.testing.assert_array_equal(zoomed.existence, scaled.existence)
+    np.testing.assert_array_equal(zoomed.orientation, scaled.orientation)
+    assert len(zoomed.centroids) > len(predict(model, points, zoom=1.0).centroids)
