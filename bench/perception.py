@@ -49,13 +49,14 @@ def main() -> None:
     for index, scene in enumerate([scenes[0]] + scenes):
         t0 = time.perf_counter()
         # the network reads the zoomed cloud, clustering and pose work in metres (perception.detect.predict)
-        coords, point_to_voxel, zoomed = network_input(args.zoom * scene.points, voxel)
+        coords, point_to_voxel, zoomed_centroids = network_input(args.zoom * scene.points, voxel)
         t1 = time.perf_counter()
         with torch.no_grad():
-            features = torch.from_numpy(voxel_features(model.config, zoomed.numpy()))
-            out = model(SparseTensor(features, coords)).double().numpy()
-        existence = 1.0 / (1.0 + np.exp(-out[:, 0]))
-        centroids = zoomed.numpy() / args.zoom
+            features = torch.from_numpy(voxel_features(model.config, zoomed_centroids.numpy()))
+            out = model(SparseTensor(features, coords)).double()
+        existence = torch.sigmoid(out[:, 0]).numpy()
+        out = out.numpy()
+        centroids = zoomed_centroids.numpy() / args.zoom
         centers = centroids + out[:, 1:4] * LENGTH_UNIT / args.zoom
         orientation = np.clip(out[:, 4], 0, 1)
         t2 = time.perf_counter()

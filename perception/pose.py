@@ -67,7 +67,7 @@ def fit_caps(points: np.ndarray, predicted_centers: np.ndarray, orientation: np.
     norm = np.linalg.norm(lam, axis=1)
     posed = norm > 1e-12
     axis = np.where(posed[:, None], lam / np.maximum(norm, 1e-12)[:, None], [0.0, 0.0, 1.0])
-    # lambda . e = intercept: the centre's error along the axis, at most the cluster's own size
+    # clipped: a cluster flat along its axis leaves the intercept poorly determined
     rms_radius = np.sqrt(np.bincount(lab, (d**2).sum(1), minlength=k) / counts)
     along_axis = np.clip(np.where(posed, intercept / np.maximum(norm, 1e-12), 0.0), -rms_radius, rms_radius)
     centers -= along_axis[:, None] * axis

@@ -176,6 +176,8 @@ def _atomic_save(payload: dict, path: Path) -> None:
 
 
 def validate(model: MushroomNet, scenes) -> dict[str, float]:
+    """The metrics of ``model`` read as shipped (perception.detect, zoom included); runs validated
+    before the zoom existed were read at zoom 1."""
     from perception.detect import evaluate_on_scenes
 
     metrics = evaluate_on_scenes(model, scenes, methods=("meanshift",))["meanshift"].as_dict()

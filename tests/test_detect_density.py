@@ -1,6 +1,7 @@
 """Clouds denser than the training scenes reach the network at the training density."""
 
 import numpy as np
+import pytest
 import torch
 from scipy.spatial import cKDTree
 
@@ -13,7 +14,8 @@ from perception.synthetic.scene import SceneConfig, generate_scene
 TINY = tiny_network_config()
 
 
-def test_a_dense_cloud_is_thinned_to_the_training_spacing_and_every_point_keeps_a_prediction():
+@pytest.mark.parametrize("zoom", [1.0, 1.1])
+def test_a_dense_cloud_is_thinned_to_the_training_spacing_and_every_point_keeps_a_prediction(zoom):
     torch.manual_seed(0)
     model = MushroomNet(TINY).eval()
     scene = generate_scene(2, SceneConfig(mushrooms=(5, 5)))
@@ -22,14 +24,15 @@ def test_a_dense_cloud_is_thinned_to_the_training_spacing_and_every_point_keeps_
     kept = voxel_representatives(dense, TRAINING_SPACING)
     assert len(dense) > 2 * len(kept)
 
-    thinned = predict(model, dense, zoom=1.0)
-    direct = predict(model, dense[kept], spacing=None, zoom=1.0)
+    thinned = predict(model, dense, zoom=zoom)
+    direct = predict(model, dense[kept], spacing=None, zoom=zoom)
     assert np.array_equal(thinned.centroids, direct.centroids)
     assert np.allclose(thinned.existence, direct.existence) and np.allclose(thinned.centers, direct.centers)
     assert np.array_equal(thinned.point_to_voxel[kept], direct.point_to_voxel)
     # every other point takes its own voxel when that is occupied, else the voxel with the nearest centroid
     others = np.setdiff1d(np.arange(len(dense)), kept)
-    voxel = model.config.voxel
+    # the network's cells are the model's voxel on the zoomed cloud
+    voxel = model.config.voxel / zoom
     occupied = {tuple(cell) for cell in np.floor(thinned.centroids / voxel).astype(int)}
     own = np.floor(dense[others] / voxel).astype(int)
     has_own = np.array([tuple(cell) in occupied for cell in own])
