@@ -118,6 +118,7 @@ def train_config(args: argparse.Namespace):
                        validation_scenes=args.validation_scenes, weight_existence=args.weight_existence,
                        weight_residual=args.weight_residual, weight_orientation=args.weight_orientation,
                        orientation_on_caps=args.orientation_on_caps, cap_balance=args.cap_balance,
+                       scale_jitter=tuple(args.scale_jitter),
                        init_weights=str(Path(args.init).resolve()) if args.init else None)
 
 
@@ -133,6 +134,9 @@ def cmd_train(args: argparse.Namespace) -> int:
     run_dir = _writable_dir(args.out)
     if (run_dir / "checkpoint.pt").exists() and not args.resume:
         raise CliError(f"{run_dir} already holds a checkpoint: add --resume to continue it, or pick a new --out")
+    low, high = args.scale_jitter
+    if low > high:
+        raise CliError(f"--scale-jitter wants LOW HIGH with LOW <= HIGH, got {low} {high}")
     config = train_config(args)
     torch_threads(args.threads)
     try:
@@ -390,6 +394,9 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--cap-balance", action="store_true",
                        help="weigh cap voxels so every cap counts the same in the existence and orientation losses, "
                             "whatever its size (orientation then on caps only)")
+    train.add_argument("--scale-jitter", type=_positive(float), nargs=2, default=[0.9, 1.1], metavar=("LOW", "HIGH"),
+                       help="scale each training bed by a factor drawn from [LOW, HIGH] (default 0.9 1.1); "
+                            "the shipped model reads clouds zoomed by perception.detect.INFERENCE_ZOOM")
     train.add_argument("--init", help="start from these weights (fine-tuning), e.g. perception/weights/default.pt")
     train.add_argument("--resume", action="store_true", help="continue the checkpoint in --out exactly")
     train.add_argument("--max-minutes", type=_positive(float),

@@ -70,13 +70,22 @@ def test_train_flags_set_the_loss_weights_and_defaults_are_the_papers():
     default = train_config(parse(["train", "--out", "RUN"]))
     paper = TrainConfig()
     assert (default.weight_existence, default.weight_residual, default.weight_orientation,
-            default.orientation_on_caps, default.cap_balance) == (paper.weight_existence, paper.weight_residual,
-                                                                  paper.weight_orientation, paper.orientation_on_caps,
-                                                                  paper.cap_balance)
+            default.orientation_on_caps, default.cap_balance, default.scale_jitter) == (
+        paper.weight_existence, paper.weight_residual, paper.weight_orientation, paper.orientation_on_caps,
+        paper.cap_balance, paper.scale_jitter)
     tuned = train_config(parse(["train", "--out", "RUN", "--weight-existence", "2", "--weight-residual", "50",
-                                "--weight-orientation", "10", "--orientation-on-caps", "--cap-balance"]))
+                                "--weight-orientation", "10", "--orientation-on-caps", "--cap-balance",
+                                "--scale-jitter", "1.0", "1.2"]))
     assert (tuned.weight_existence, tuned.weight_residual, tuned.weight_orientation, tuned.orientation_on_caps,
-            tuned.cap_balance) == (2.0, 50.0, 10.0, True, True)
+            tuned.cap_balance, tuned.scale_jitter) == (2.0, 50.0, 10.0, True, True, (1.0, 1.2))
+
+
+def test_a_scale_jitter_upside_down_gives_one_line_and_exit_2(tmp_path):
+    result = run("train", "--out", str(tmp_path / "run"), "--scale-jitter", "1.2", "1.0")
+    assert result.returncode != 0 and "Traceback" not in result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--scale-jitter" in lines[0], result.stderr
+    assert not (tmp_path / "run" / "checkpoint.pt").exists()
 
 
 def test_a_loss_weight_that_is_not_positive_gives_one_line_and_exit_2(tmp_path):
