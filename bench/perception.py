@@ -22,11 +22,9 @@ import numpy as np
 import torch
 from sklearn.cluster import MeanShift
 
-from perception.detect import DEFAULT_WEIGHTS, INFERENCE_ZOOM, network_input
+from perception.detect import DEFAULT_WEIGHTS, INFERENCE_ZOOM, network_input, network_output
 from perception.instances import ClusterConfig, cluster
-from perception.model import LENGTH_UNIT, voxel_features
 from perception.pose import fit_caps
-from perception.sparse import SparseTensor
 from perception.synthetic.dataset import load_preset
 from perception.train import load_weights
 
@@ -48,17 +46,10 @@ def main() -> None:
                             "bins")}
     for index, scene in enumerate([scenes[0]] + scenes):
         t0 = time.perf_counter()
-        # the network reads the zoomed cloud, clustering and pose work in metres (perception.detect.predict)
+        # as perception.detect.predict: the network reads the zoomed cloud, clustering and pose work in metres
         coords, point_to_voxel, zoomed_centroids = network_input(args.zoom * scene.points, voxel)
         t1 = time.perf_counter()
-        with torch.no_grad():
-            features = torch.from_numpy(voxel_features(model.config, zoomed_centroids.numpy()))
-            out = model(SparseTensor(features, coords)).double()
-        existence = torch.sigmoid(out[:, 0]).numpy()
-        out = out.numpy()
-        centroids = zoomed_centroids.numpy() / args.zoom
-        centers = centroids + out[:, 1:4] * LENGTH_UNIT / args.zoom
-        orientation = np.clip(out[:, 4], 0, 1)
+        centroids, existence, centers, orientation = network_output(model, coords, zoomed_centroids, args.zoom)
         t2 = time.perf_counter()
         labels = cluster(centroids, centers, existence, voxel, ClusterConfig())
         t3 = time.perf_counter()

@@ -87,13 +87,7 @@ def predict(model: MushroomNet, points: np.ndarray, spacing: float | None = TRAI
             kept = representatives
     device = next(model.parameters()).device
     coords, kept_to_voxel, zoomed_centroids = network_input(zoom * points[kept], model.config.voxel, device)
-    model.eval()
-    features = torch.from_numpy(voxel_features(model.config, zoomed_centroids.numpy())).to(device)
-    out = model(SparseTensor(features, coords)).double().cpu()
-    existence = torch.sigmoid(out[:, 0]).numpy()
-    centroids = zoomed_centroids.numpy() / zoom
-    centers = centroids + out[:, 1:4].numpy() * LENGTH_UNIT / zoom
-    orientation = out[:, 4].clamp(0.0, 1.0).numpy()
+    centroids, existence, centers, orientation = network_output(model, coords, zoomed_centroids, zoom)
     if len(kept) == len(points):
         point_to_voxel = kept_to_voxel.numpy()
     else:
@@ -101,6 +95,19 @@ def predict(model: MushroomNet, points: np.ndarray, spacing: float | None = TRAI
                                         zoomed_centroids.numpy())
         point_to_voxel[kept] = kept_to_voxel.numpy()
     return VoxelPrediction(centroids, existence, centers, orientation, point_to_voxel)
+
+
+@torch.no_grad()
+def network_output(model: MushroomNet, coords: torch.Tensor, zoomed_centroids: torch.Tensor, zoom: float):
+    """The network on voxels of a cloud scaled by ``zoom`` (from ``network_input``), decoded in the
+    cloud's own metres: voxel centroids, existence, predicted cap centres, orientation values (numpy)."""
+    model.eval()
+    device = next(model.parameters()).device
+    features = torch.from_numpy(voxel_features(model.config, zoomed_centroids.numpy())).to(device)
+    out = model(SparseTensor(features, coords)).double().cpu()
+    centroids = zoomed_centroids.numpy() / zoom
+    return (centroids, torch.sigmoid(out[:, 0]).numpy(), centroids + out[:, 1:4].numpy() * LENGTH_UNIT / zoom,
+            out[:, 4].clamp(0.0, 1.0).numpy())
 
 
 def _nearest_voxel(points: np.ndarray, voxel: float, coords: np.ndarray, centroids: np.ndarray) -> np.ndarray:

@@ -131,12 +131,12 @@ def cmd_train(args: argparse.Namespace) -> int:
     resuming = args.resume and (Path(args.out) / "checkpoint.pt").is_file()
     if args.init and not resuming and not Path(args.init).is_file():
         raise CliError(f"--init: no weights file at {args.init}")
-    run_dir = _writable_dir(args.out)
-    if (run_dir / "checkpoint.pt").exists() and not args.resume:
-        raise CliError(f"{run_dir} already holds a checkpoint: add --resume to continue it, or pick a new --out")
     low, high = args.scale_jitter
     if low > high:
         raise CliError(f"--scale-jitter wants LOW HIGH with LOW <= HIGH, got {low} {high}")
+    run_dir = _writable_dir(args.out)
+    if (run_dir / "checkpoint.pt").exists() and not args.resume:
+        raise CliError(f"{run_dir} already holds a checkpoint: add --resume to continue it, or pick a new --out")
     config = train_config(args)
     torch_threads(args.threads)
     try:
