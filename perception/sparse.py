@@ -163,7 +163,10 @@ class _SparseConvFunction(torch.autograd.Function):
     Saves only ``features`` and ``weight``; backward gathers again instead of keeping the per-offset
     gathered copies, which would cost K times the input's memory. Rows are gathered with
     ``index_select``: the network's forward pass on val50 beds took 192 ms instead of 242 ms with
-    indexing (``features[i]``) on 2 CPU cores.
+    indexing (``features[i]``) on 2 CPU cores. Per offset stays: on a 12.5 k-voxel training bed (8.1
+    occupied neighbours of 27), at 32 channels, a dense neighbour table and one matmul (im2col) took 68
+    against 19 ms for forward and backward, a CSR sparse matmul 69 against 9 ms forward, and a single
+    ``index_add_`` over all offsets 9.6 against 8.9 ms.
     """
 
     @staticmethod
