@@ -62,7 +62,7 @@ PRESETS = {
     "slim-no": NetworkConfig(channels=(32, 48, 64, 96), up_channels=(48, 48, 64, 64), first_kernel=3, normals=True,
                              offsets=True),
     # slim-no with the coarser levels (stride 2 to 8) wider and the full-resolution ones unchanged: the
-    # training step costs about 1.2 times as much, the forward pass 1.05 times (model card, "capacity")
+    # training step costs about 1.2 times as much, the forward pass 1.05 times (model card: "A wider network")
     "wide-no": NetworkConfig(channels=(32, 64, 128, 192), up_channels=(48, 48, 96, 128), first_kernel=3, normals=True,
                              offsets=True),
 }

@@ -377,8 +377,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--lr", type=_positive(float), default=1e-3, help="Adam learning rate (default 1e-3)")
     train.add_argument("--network", default="slim-no", help="network preset: slim-no (default, the shipped "
                        "model's: slim U-Net fed normals and each centroid's place in its voxel), slim-n (normals "
-                       "only), slim (occupancy only, as the paper), wide-no (slim-no with wider coarse levels) or fcgf (the "
-                       "paper's full backbone)")
+                       "only), slim (occupancy only, as the paper), wide-no (slim-no with wider coarse levels) "
+                       "or fcgf (the paper's full backbone)")
     train.add_argument("--seed", type=_non_negative_int, default=0)
     train.add_argument("--checkpoint-every", type=_positive(int), default=200)
     train.add_argument("--validate-every", type=_positive(int), default=1000)
