@@ -174,7 +174,7 @@ def log_rerun(rec, result: SceneResult, points: np.ndarray, entity: str = "world
 
 
 def evaluate_on_scenes(model: MushroomNet, scenes, methods=("meanshift", "dbscan"), height: str = "free",
-                       progress: bool = False) -> dict:
+                       axis: str = "surface", progress: bool = False) -> dict:
     """The paper's metrics of ``model`` on synthetic scenes, per clustering method (one network pass each)."""
     from tqdm import tqdm
 
@@ -189,7 +189,7 @@ def evaluate_on_scenes(model: MushroomNet, scenes, methods=("meanshift", "dbscan
             labels = cluster(prediction.centroids, prediction.centers, prediction.existence, model.config.voxel,
                              ClusterConfig(method=method))
             fit = fit_caps(prediction.centroids, prediction.centers, prediction.orientation, prediction.existence,
-                           labels, height)
+                           labels, height, axis)
             preds[method].append(SceneCaps(fit.centers, fit.rotations, fit.scales, fit.scores))
         visible = ground_truth_mask(scene)
         gts.append(SceneCaps(scene.centers[visible], scene.rotations[visible], scene.scales[visible]))

@@ -260,7 +260,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     report = {}
     for name in args.set:
         scenes = load_preset(name, args.visibility, progress=not args.quiet, limit=args.scenes)
-        results = evaluate_on_scenes(model, scenes, height=args.height, progress=not args.quiet)
+        results = evaluate_on_scenes(model, scenes, height=args.height, axis=args.axis, progress=not args.quiet)
         print(_eval_table(name + (f" (first {len(scenes)} scenes)" if args.scenes else ""), results))
         report[name] = {method: result.as_dict() for method, result in results.items()}
     if json_path is not None:
@@ -424,6 +424,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--visibility", choices=["hpr", "camera", "katz"], default="hpr")
     evaluate.add_argument("--height", choices=["free", "fixed"], default="free",
                           help="cap height: fitted (default) or the paper's fixed s_z = 2 s / 3")
+    evaluate.add_argument("--axis", choices=["surface", "encoding"], default="surface",
+                          help="cap axis: the encoding's refined by the cap's surface (default), or the "
+                          "encoding's alone, as in the paper")
     evaluate.add_argument("--scenes", type=_positive(int), help="only the first N scenes of each set")
     evaluate.add_argument("--quiet", action="store_true")
     evaluate.set_defaults(run=cmd_eval)
