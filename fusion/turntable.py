@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 from capture.frames import DepthFrame
 from capture.virtual import Turntable
 from fusion.registration import (RegistrationConfig, chain_poses, check_frames, prepare_view, refine_poses,
-                                 register_global, register_pair)
+                                 register_unknown)
 
 RIG_FORMAT = "mushroom-pose rig"
 RIG_VERSION = 1
@@ -214,7 +214,7 @@ def estimate_rig(frames: list[DepthFrame], reference: str | None = None,
         first = next(f for f in frames if f.sensor_id == sensor)
         nearest = min(own, key=lambda f: abs(f.timestamp_ns - first.timestamp_ns))
         source, target = prepare_view(first, config), prepare_view(nearest, config)
-        result = register_pair(source, target, register_global(source, target, config), config)
+        result = register_unknown(source, target, config)
         if result.fitness < config.min_fitness:
             raise ValueError(f"camera {sensor!r} does not overlap camera {reference!r} (ICP fitness "
                              f"{result.fitness:.2f}): calibrate with a scene both see")
