@@ -17,7 +17,7 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 from capture.mcap_io import McapRecorder, McapSource  # noqa: E402
-from capture.virtual import apply_sensor_model  # noqa: E402
+from capture.virtual import sense_view  # noqa: E402
 from pipeline.sources import VirtualBedRig, virtual_bed_source  # noqa: E402
 
 
@@ -45,11 +45,11 @@ def main() -> None:
             start = time.perf_counter()
             render = source._scene.render(source.config.intrinsics, T_world_camera)
             middle = time.perf_counter()
-            apply_sensor_model(render, source.config.sensor, np.random.default_rng(index))
+            sense_view(render, source.config, index)
             cast_s.append(middle - start)
             sensor_s.append(time.perf_counter() - middle)
-        print(f"  of which ray casting (Open3D) {1000 * np.median(cast_s):.1f} ms, "
-              f"sensor model {1000 * np.median(sensor_s):.1f} ms")
+        print(f"  of which rendering (Open3D rays and cast_rays, incidence) {1000 * np.median(cast_s):.1f} ms, "
+              f"sensor model and frame {1000 * np.median(sensor_s):.1f} ms")
     out_dir = args.out or Path(tempfile.mkdtemp())
     for compression in ("zstd", "lz4", None):
         path = out_dir / f"session-{compression or 'none'}.mcap"
