@@ -196,9 +196,11 @@ def _gaussian_table(seed: int, pixels: int) -> np.ndarray:
     A frame's range noise is a window of it at a random offset: within a frame the samples are
     independent, as before. Drawing 407 k fresh ones took 7-8 ms a frame at 848x480, a ninth of the
     time 15 fps allows. Two frames share values only at pixels shifted by the difference of their
-    offsets, which fusion never lines up.
+    offsets; a surface point seen in both lands on pixels unrelated to that shift.
     """
-    return np.random.default_rng([seed, 1 << 32]).standard_normal(NOISE_TABLE_FRAMES * pixels, dtype=np.float32)
+    table = np.random.default_rng([seed, 1 << 32]).standard_normal(NOISE_TABLE_FRAMES * pixels, dtype=np.float32)
+    table.flags.writeable = False
+    return table
 
 
 def render_view(scene: MeshScene, config: VirtualCameraConfig, index: int) -> DepthFrame:

@@ -74,7 +74,10 @@ def _sum_by_label(values: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
 
 def fit_caps(points: np.ndarray, predicted_centers: np.ndarray, orientation: np.ndarray,
              existence: np.ndarray, labels: np.ndarray, height: str = "free", axis: str = "surface") -> CapFit:
-    """Fit every labelled instance (labels 0..K-1; -1 ignored) in one vectorised pass."""
+    """Fit every labelled instance (labels 0..K-1; -1 ignored) in one vectorised pass.
+
+    ``axis="surface"`` refines the encoding's axes by each cluster's surface (``refine_axes``);
+    ``"encoding"`` keeps the encoding's, as the paper does."""
     if height not in HEIGHT_MODES:
         raise ValueError(f"unknown height mode {height!r}; choose one of {HEIGHT_MODES}")
     if axis not in AXIS_MODES:
