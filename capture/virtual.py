@@ -12,7 +12,7 @@ from functools import lru_cache
 import numpy as np
 import open3d as o3d
 
-from capture.frames import CameraIntrinsics, DepthFrame
+from capture.frames import CameraIntrinsics, DepthFrame, backproject
 from capture.source import Source
 
 
@@ -84,10 +84,9 @@ class MeshScene:
         """1 / |direction| per pixel: the rays have unit z in the camera frame, so the hit distance is the
         depth, and rotating them does not change their length."""
         if intrinsics not in self._inverse_lengths:
-            u, v = np.meshgrid(np.arange(intrinsics.width, dtype=np.float32),
-                               np.arange(intrinsics.height, dtype=np.float32))
-            x, y = (u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy
-            self._inverse_lengths[intrinsics] = 1.0 / np.sqrt(x * x + y * y + 1.0)
+            unit_depth = np.ones((intrinsics.height, intrinsics.width), np.float32)
+            directions = backproject(unit_depth, intrinsics)[0]
+            self._inverse_lengths[intrinsics] = (1.0 / np.linalg.norm(directions, axis=1)).reshape(unit_depth.shape)
         return self._inverse_lengths[intrinsics]
 
 
