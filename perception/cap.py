@@ -52,9 +52,21 @@ def axis_to_angles(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def rotation_from_axis(axis: np.ndarray) -> np.ndarray:
-    """The spin-free cap rotation R_y R_x whose cap axis is ``axis`` (..., 3)."""
-    theta_x, theta_y = axis_to_angles(axis)
-    return cap_rotation(theta_x, theta_y)
+    """The spin-free cap rotation R_y R_x whose cap axis is the unit ``axis`` (..., 3).
+
+    Written out rather than built from ``axis_to_angles``: the pose fit calls it on every cap twice.
+    With c = cos(theta_x) = sqrt(1 - u_y^2), the columns of R are (u_z, 0, -u_x) / c,
+    (-u_x u_y / c, c, -u_z u_y / c) and u; an axis along y (c = 0) has theta_y = 0, as
+    ``axis_to_angles`` gives it."""
+    u = np.asarray(axis, dtype=np.float64)
+    x, y, z = u[..., 0], u[..., 1], u[..., 2]
+    c = np.sqrt(np.clip(1.0 - y * y, 0.0, 1.0))
+    upright = c > 1e-12
+    inv_c = 1.0 / np.where(upright, c, 1.0)
+    sin_y, cos_y = np.where(upright, x * inv_c, 0.0), np.where(upright, z * inv_c, 1.0)
+    zero = np.zeros_like(c)
+    first, second = np.stack([cos_y, zero, -sin_y], -1), np.stack([-sin_y * y, c, -cos_y * y], -1)
+    return np.stack([first, second, u], -1)
 
 
 def tilt_deg(axis: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:

@@ -72,7 +72,11 @@ def test_an_error_in_the_predicted_centre_leaves_the_axis_and_is_removed_along_i
         centre_error = 0.003 * rotation[:, 2] + 0.002 * rotation[:, 0]
         labels = np.zeros(len(points), np.int64)
         fit = fit_caps(points, centers + centre_error, orientation, np.ones(len(points)), labels)
-        np.testing.assert_allclose(fit.rotations[0][:, 2], rotation[:, 2], atol=1e-9)
+        # the surface fit starts 2 mm off sideways and converges to within 1e-5 degrees
+        np.testing.assert_allclose(fit.rotations[0][:, 2], rotation[:, 2], atol=1e-6)
+        exact = fit_caps(points, centers + centre_error, orientation, np.ones(len(points)), labels,
+                         axis="encoding")
+        np.testing.assert_allclose(exact.rotations[0][:, 2], rotation[:, 2], atol=1e-9)
         np.testing.assert_allclose(fit.centers[0], 0.002 * rotation[:, 0], atol=1e-9)
         np.testing.assert_allclose(fit.scales[0], [0.015, 0.015, 0.01], rtol=0.1)
         without_intercept = np.linalg.lstsq(points - centre_error, orientation, rcond=None)[0]
