@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -17,7 +18,7 @@ from perception.sparse import SparseTensor, voxelize
 from perception.synthetic.scene import SceneConfig
 
 
-DEFAULT_WEIGHTS = __import__("pathlib").Path(__file__).parent / "weights" / "default.pt"
+DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "default.pt"
 TRAINING_SPACING = SceneConfig().voxel
 """Point spacing of the synthetic training scenes (metres): the density the network expects."""
 INFERENCE_ZOOM = 1.1

@@ -27,6 +27,16 @@ def test_axis_angles_round_trip():
         np.testing.assert_allclose(rotation_from_axis(axis), cap_rotation(theta_x, theta_y), atol=1e-12)
 
 
+def test_rotation_from_axis_is_the_spin_free_rotation_of_its_angles():
+    axes = np.random.default_rng(3).normal(size=(500, 3))
+    axes = np.concatenate([axes / np.linalg.norm(axes, axis=1, keepdims=True), [[0, 1, 0], [0, -1, 0], [0, 0, -1]]])
+    rotations = rotation_from_axis(axes)
+    np.testing.assert_allclose(rotations, cap_rotation(*axis_to_angles(axes)), atol=1e-12)
+    np.testing.assert_allclose(rotations[:, :, 2], axes, atol=1e-15)
+    np.testing.assert_allclose(rotations.transpose(0, 2, 1) @ rotations, np.broadcast_to(np.eye(3), rotations.shape),
+                               atol=1e-12)
+
+
 @pytest.mark.parametrize("height", ["free", "fixed"])
 def test_ideal_caps_are_recovered_exactly_all_at_once(height):
     caps = [((0.0, 0.0, 0.01), 0.4, -0.3, 1.0, 0.02), ((0.1, 0.05, 0.0), -0.6, 0.1, 2.0, 0.012),
