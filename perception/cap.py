@@ -55,12 +55,12 @@ def rotation_from_axis(axis: np.ndarray) -> np.ndarray:
     """The spin-free cap rotation R_y R_x whose cap axis is the unit ``axis`` (..., 3).
 
     Written out rather than built from ``axis_to_angles``: the pose fit calls it on every cap twice.
-    With c = cos(theta_x) = sqrt(1 - u_y^2), the columns of R are (u_z, 0, -u_x) / c,
-    (-u_x u_y / c, c, -u_z u_y / c) and u; an axis along y (c = 0) has theta_y = 0, as
-    ``axis_to_angles`` gives it."""
+    With c = cos(theta_x) = |(u_x, u_z)| (not sqrt(1 - u_y^2), which cancels near +-y), the columns of
+    R are (u_z, 0, -u_x) / c, (-u_x u_y / c, c, -u_z u_y / c) and u; an axis exactly along +-y (c = 0)
+    gets theta_y = 0."""
     u = np.asarray(axis, dtype=np.float64)
     x, y, z = u[..., 0], u[..., 1], u[..., 2]
-    c = np.sqrt(np.clip(1.0 - y * y, 0.0, 1.0))
+    c = np.hypot(x, z)
     upright = c > 1e-12
     inv_c = 1.0 / np.where(upright, c, 1.0)
     sin_y, cos_y = np.where(upright, x * inv_c, 0.0), np.where(upright, z * inv_c, 1.0)

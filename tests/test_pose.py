@@ -29,12 +29,18 @@ def test_axis_angles_round_trip():
 
 def test_rotation_from_axis_is_the_spin_free_rotation_of_its_angles():
     axes = np.random.default_rng(3).normal(size=(500, 3))
-    axes = np.concatenate([axes / np.linalg.norm(axes, axis=1, keepdims=True), [[0, 1, 0], [0, -1, 0], [0, 0, -1]]])
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    np.testing.assert_allclose(rotation_from_axis(axes), cap_rotation(*axis_to_angles(axes)), rtol=0, atol=1e-12)
+    # near +-y the angles (an arcsin near 1) lose digits; R_y R_x is still pinned down: a rotation whose
+    # third column is the axis, first column in the xz-plane, and R[1, 1] = cos(theta_x) >= 0
+    near_y = np.array([[1e-7, 1.0, 0.0], [0.0, -1.0, 1e-6], [-1e-5, 1.0, 1e-5], [0, 1, 0], [0, -1, 0], [0, 0, -1]])
+    axes = np.concatenate([axes, near_y / np.linalg.norm(near_y, axis=1, keepdims=True)])
     rotations = rotation_from_axis(axes)
-    np.testing.assert_allclose(rotations, cap_rotation(*axis_to_angles(axes)), atol=1e-12)
-    np.testing.assert_allclose(rotations[:, :, 2], axes, atol=1e-15)
+    np.testing.assert_allclose(rotations[:, :, 2], axes, rtol=0, atol=1e-15)
     np.testing.assert_allclose(rotations.transpose(0, 2, 1) @ rotations, np.broadcast_to(np.eye(3), rotations.shape),
-                               atol=1e-12)
+                               rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(rotations), 1.0, rtol=0, atol=1e-12)
+    assert np.all(rotations[:, 1, 0] == 0) and np.all(rotations[:, 1, 1] >= 0)
 
 
 @pytest.mark.parametrize("height", ["free", "fixed"])
@@ -82,7 +88,7 @@ def test_an_error_in_the_predicted_centre_leaves_the_axis_and_is_removed_along_i
         centre_error = 0.003 * rotation[:, 2] + 0.002 * rotation[:, 0]
         labels = np.zeros(len(points), np.int64)
         fit = fit_caps(points, centers + centre_error, orientation, np.ones(len(points)), labels)
-        # the surface fit starts 2 mm off sideways and converges to within 1e-5 degrees
+        # the surface fit starts 2 mm off sideways and converges to within 1e-4 degrees
         np.testing.assert_allclose(fit.rotations[0][:, 2], rotation[:, 2], atol=1e-6)
         exact = fit_caps(points, centers + centre_error, orientation, np.ones(len(points)), labels,
                          axis="encoding")
