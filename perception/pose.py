@@ -34,8 +34,9 @@ HEIGHT_MODES = ("free", "fixed")
 AXIS_MODES = ("surface", "encoding")
 SURFACE_ITERATIONS = 6
 """Shipped model, val50, mean angle with ``STEP_LIMITS``: 3.74 degrees after 4 iterations, 3.61 after
-5, 3.55 after 6. Each costs about a tenth of the pose step on 45 caps; 8 iterations with the earlier,
-three times tighter limits gave 3.59."""
+5, 3.55 after 6. Each costs about 0.3 ms, 8 % of the pose step on 46 caps; 8 iterations with the
+earlier, three times tighter limits gave 3.59. The figures of the next three settings were measured
+with those (session 9)."""
 SURFACE_L1_SCALE = 1e-4
 """Metres. Surface residuals above it are weighted as in an L1 fit, so that a cluster's stray voxels
 (rim, gills, a neighbour's edge) do not pull the axis. Val50 mean angle with this at 2, 0.5, 0.1 and
@@ -50,8 +51,8 @@ clusters whose fitted height ratio leaves ``HEIGHT_RATIO_RANGE``: the fit has tu
 SURFACE_MAX_POINTS = 48
 """A larger cluster is fitted on an even subset of this many points: on 2 cores the fit's cost is
 the padded width, and big caps are the well-determined ones (val50, 6 steps: 3.55 degrees, against
-3.50 with every point, 3.52 with 64 and 3.72 with 32; median pose step 2.5 ms, against 3.6, 2.9 and
-2.4)."""
+3.50 with every point, 3.52 with 64 and 3.72 with 32; median pose step on the saved outputs alone
+2.5 ms, against 3.6, 2.9 and 2.4)."""
 STEP_LIMITS = np.array([6e-3, 0.45])
 """Largest move of the centre (metres) and turn (radians) in one step of the surface fit. Val50, 6
 iterations, mean angle with these limits times 1/3, 2/3, 1 and 4/3: 3.71, 3.58, 3.55 and 3.55 degrees;
