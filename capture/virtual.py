@@ -211,10 +211,10 @@ def sense_view(render: Render, config: VirtualCameraConfig, index: int) -> Depth
     """The frame the sensor makes of view ``index``'s ideal ``render``."""
     T_world_camera, angle = config.pose(index)
     rng = np.random.default_rng([config.seed, index])
-    shape = render.depth.shape
-    table = _gaussian_table(config.seed, shape[0] * shape[1])
-    start = int(rng.integers(0, len(table) - shape[0] * shape[1] + 1))
-    depth = apply_sensor_model(render, config.sensor, rng, table[start:start + shape[0] * shape[1]].reshape(shape))
+    pixels = render.depth.size
+    table = _gaussian_table(config.seed, pixels)
+    start = int(rng.integers(0, len(table) - pixels + 1))
+    depth = apply_sensor_model(render, config.sensor, rng, table[start:start + pixels].reshape(render.depth.shape))
     timestamp = config.start_ns + int(round(index * 1e9 / config.fps))
     return to_depth_frame(depth, config.intrinsics, config.sensor, T_world_camera, timestamp, config.sensor_id,
                           angle)

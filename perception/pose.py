@@ -110,23 +110,24 @@ def fit_caps(points: np.ndarray, predicted_centers: np.ndarray, orientation: np.
     along_axis = np.clip(np.where(posed, intercept / np.maximum(norm, 1e-12), 0.0), -rms_radius, rms_radius)
     centers -= along_axis[:, None] * cap_axis
     d = p - centers[lab]
-    rotations, scales = _orient_and_size(d, lab, k, cap_axis, height)
+    rotations, scales = _orient_and_size(d, lab, counts, cap_axis, height)
     if axis == "surface":
         cap_axis = refine_axes(p, y, lab, centers, rotations, scales)
-        rotations, scales = _orient_and_size(d, lab, k, cap_axis, height)
+        rotations, scales = _orient_and_size(d, lab, counts, cap_axis, height)
     scores = np.bincount(lab, existence[mask], minlength=k) / counts
     return CapFit(centers, rotations, scales, scores, counts)
 
 
-def _orient_and_size(d: np.ndarray, lab: np.ndarray, k: int, cap_axis: np.ndarray,
+def _orient_and_size(d: np.ndarray, lab: np.ndarray, counts: np.ndarray, cap_axis: np.ndarray,
                      height: str) -> tuple[np.ndarray, np.ndarray]:
-    """Spin-free rotations (axis turned up) and (s, s, s_z) for offsets ``d`` from the cap centres."""
+    """Spin-free rotations (axis turned up) and (s, s, s_z) for offsets ``d`` from the cap centres;
+    ``counts``: points per label."""
+    k = len(counts)
     cap_axis = cap_axis * np.where(cap_axis[:, 2:3] < 0, -1.0, 1.0)
     rotations = rotation_from_axis(cap_axis)
     axial = (d * cap_axis[lab]).sum(1)
     axial2 = axial**2
     radial2 = np.maximum((d**2).sum(1) - axial2, 0.0)
-    counts = np.bincount(lab, minlength=k)
     s = np.bincount(lab, np.sqrt(radial2 + axial2 / CAP_HEIGHT_RATIO**2), minlength=k) / counts
     s_z = CAP_HEIGHT_RATIO * s
     if height == "free":
@@ -152,7 +153,8 @@ def refine_axes(points: np.ndarray, orientation: np.ndarray, lab: np.ndarray, ce
     # clusters as zero-padded rows, (K, component, width): every step is a batched array operation
     # whose innermost loop runs along a cluster's points
     slot = np.empty(len(lab), np.int64)
-    slot[np.argsort(lab, kind="stable")] = np.arange(len(lab)) - np.repeat(np.cumsum(counts) - counts, counts)
+    first_of_label = np.cumsum(counts) - counts
+    slot[np.argsort(lab, kind="stable")] = np.arange(len(lab)) - np.repeat(first_of_label, counts)
     if SURFACE_MAX_POINTS:
         stride = np.maximum(counts / SURFACE_MAX_POINTS, 1.0)[lab]
         spread = np.floor(slot / stride)
