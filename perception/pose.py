@@ -159,7 +159,8 @@ def refine_axes(points: np.ndarray, orientation: np.ndarray, lab: np.ndarray, ce
         stride = np.maximum(counts / SURFACE_MAX_POINTS, 1.0)[lab]
         spread = np.floor(slot / stride)
         chosen = (slot == 0) | (spread != np.floor((slot - 1) / stride))
-        points, orientation, lab, slot = points[chosen], orientation[chosen], lab[chosen], spread[chosen].astype(np.int64)
+        points, orientation, lab = points[chosen], orientation[chosen], lab[chosen]
+        slot = spread[chosen].astype(np.int64)
     width = int(slot.max()) + 1
     real = np.zeros((k, width))
     real[lab, slot] = 1.0
