@@ -3,7 +3,8 @@
 
 A cap counts as ground truth in a setting when at least 5 fused points lie on its cap surface
 (within 2 mm), so every setting is scored on the caps it could see; n_gt says how many that was.
-Prints a Markdown table (AP@25, AP@50, axis angle, scale error, caps seen) for docs/RESULTS.md.
+Prints a Markdown table (AP@25, AP@50, cosine, axis angle as the paper's and as the mean over caps,
+scale error, caps seen) for docs/RESULTS.md.
 Usage: python bench/views.py [--beds 10] [--model PATH]
 """
 
@@ -72,14 +73,17 @@ def main() -> None:
             points[name].append(len(fused))
             print(f"bed {seed} {name}: {len(fused)} points, {len(seen)}/{len(bed.centers)} caps seen, "
                   f"{len(result.mushrooms)} detected, {time.perf_counter() - start:.1f} s", flush=True)
-    print(f"\nmodel: {args.model} ({meta.get('total_iterations', meta.get('iterations', '?'))} iterations); {args.beds} beds (seeds 100-"
-          f"{99 + args.beds}); MeanShift\n")
-    print("| views | AP@25 | AP@50 | axis angle (deg) | scale error | caps seen / all | points per bed |")
-    print("|---|---|---|---|---|---|---|")
+    iterations = meta.get("total_iterations", meta.get("iterations", "?"))
+    print(f"\nmodel: {args.model} ({iterations} iterations); {args.beds} beds "
+          f"(seeds 100-{99 + args.beds}); MeanShift\n")
+    print("| views | AP@25 | AP@50 | cosine | angle (deg) | mean angle over caps (deg) | scale error "
+          "| caps seen / all | points per bed |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for name in SETTINGS:
         r = evaluate(preds[name], gts[name])
         total = sum(len(g) for g in gts[name])
-        print(f"| {name} | {100 * r.ap25:.1f} % | {100 * r.ap50:.1f} % | {r.angle_deg:.2f} | {100 * r.scale_err:.1f} % "
+        print(f"| {name} | {100 * r.ap25:.1f} % | {100 * r.ap50:.1f} % | {r.cosine:.4f} | {r.angle_deg:.2f} "
+              f"| {r.angle_deg_mean:.2f} | {100 * r.scale_err:.1f} % "
               f"| {total} / {all_caps} | {np.median(points[name]):.0f} |")
 
 

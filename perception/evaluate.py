@@ -197,9 +197,12 @@ class EvalResult:
     """Detection quality over a set of scenes.
 
     ``scale_err`` = |s_pred - s_true| / s_pred (the paper's form), ``scale_err_true`` divides by s_true;
-    s is the cap radius (mean of the first two semi-axes). ``cosine`` / ``angle_deg`` compare the cap
-    axes. These are means (medians alongside) over the matches at IoU >= 0.25, nan without matches.
-    ``ap`` holds (threshold, AP) for every threshold evaluated.
+    s is the cap radius (mean of the first two semi-axes). ``cosine`` is the mean cosine between the
+    predicted and true cap axes, and ``angle_deg`` its angle, arccos of that mean: the paper's "theta
+    error" is that (its Table 4 pairs 0.9643 / 15.35, 0.9973 / 4.22 and 0.9828 / 10.63 degrees). A few
+    caps far off weigh on it much more than on ``angle_deg_mean``, the mean of the caps' own angles.
+    These are over the matches at IoU >= 0.25 (medians alongside), nan without matches. ``ap`` holds
+    (threshold, AP) for every threshold evaluated.
     """
 
     ap25: float
@@ -208,6 +211,7 @@ class EvalResult:
     scale_err_true: float
     cosine: float
     angle_deg: float
+    angle_deg_mean: float
     scale_err_median: float
     angle_deg_median: float
     n_gt: int
@@ -221,7 +225,7 @@ class EvalResult:
             "scale_err": float(self.scale_err), "cosine": float(self.cosine),
             "angle_deg": float(self.angle_deg), "n_gt": int(self.n_gt), "n_pred": int(self.n_pred),
             "scale_err_true": float(self.scale_err_true),
-            "scale_err_median": float(self.scale_err_median),
+            "angle_deg_mean": float(self.angle_deg_mean), "scale_err_median": float(self.scale_err_median),
             "angle_deg_median": float(self.angle_deg_median), "n_matched": int(self.n_matched),
         }
         for threshold, ap in self.ap:
@@ -231,6 +235,10 @@ class EvalResult:
 
 def _stat(values: np.ndarray, fn) -> float:
     return float(fn(values)) if len(values) else float("nan")
+
+
+def _angle_of_mean_cosine(cosine: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip(np.mean(cosine), -1.0, 1.0))))
 
 
 def evaluate(preds: list[SceneCaps], gts: list[SceneCaps],
@@ -268,7 +276,8 @@ def evaluate(preds: list[SceneCaps], gts: list[SceneCaps],
     return EvalResult(
         ap25=ap[0.25], ap50=ap[0.5],
         scale_err=_stat(scale_err, np.mean), scale_err_true=_stat(scale_err_true, np.mean),
-        cosine=_stat(cosine, np.mean), angle_deg=_stat(angle, np.mean),
+        cosine=_stat(cosine, np.mean), angle_deg=_stat(cosine, _angle_of_mean_cosine),
+        angle_deg_mean=_stat(angle, np.mean),
         scale_err_median=_stat(scale_err, np.median), angle_deg_median=_stat(angle, np.median),
         n_gt=int(n_gt), n_pred=int(len(scores)), n_matched=int(len(dets)),
         ap=tuple((t, ap[t]) for t in all_thresholds),

@@ -151,7 +151,25 @@ def test_scale_and_axis_errors_of_matches():
     assert result.scale_err_true == pytest.approx(abs(s_pred - s_true) / s_true)
     assert result.cosine == pytest.approx(math.cos(math.radians(tilt)))
     assert result.angle_deg == pytest.approx(tilt)
+    assert result.angle_deg_mean == pytest.approx(tilt)
     assert result.angle_deg_median == pytest.approx(tilt)
+
+
+def test_angle_is_that_of_the_mean_cosine_as_in_the_paper():
+    """Three caps off by 2, 4 and 40 degrees: the paper's angle is arccos of the mean cosine, which the
+    one far-off cap pulls much further than it pulls the mean of the three angles."""
+    rng = np.random.default_rng(8)
+    gt = ground_truth_scene(3, rng)
+    tilts = np.array([2.0, 4.0, 40.0])
+    rotations = gt.rotations @ Rotation.from_euler("x", tilts[:, None], degrees=True).as_matrix()
+    pred = SceneCaps(gt.centers, rotations, gt.scales, np.ones(3))
+    result = evaluate([pred], [gt])
+    assert result.n_matched == 3
+    assert result.cosine == pytest.approx(np.cos(np.radians(tilts)).mean())
+    assert result.angle_deg == pytest.approx(math.degrees(math.acos(np.cos(np.radians(tilts)).mean())))
+    assert result.angle_deg_mean == pytest.approx(tilts.mean())
+    assert result.angle_deg_median == pytest.approx(4.0)
+    assert result.angle_deg > result.angle_deg_mean
 
 
 def test_missing_detection():
