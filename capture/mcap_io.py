@@ -165,8 +165,8 @@ class McapRecorder:
     def __enter__(self) -> "McapRecorder":
         return self
 
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
+    def __exit__(self, kind: Any, *exc: Any) -> None:
+        self.close(discard=kind is not None and not self._channels)
 
     def _channel(self, topic: str, kind: type, **kwargs: Any) -> Any:
         channel = self._channels.get(topic)
@@ -237,9 +237,11 @@ class McapRecorder:
             fields=[PackedElementField(name=name, offset=4 * i, type=f32) for i, name in enumerate("xyz")],
             data=np.ascontiguousarray(points, "<f4").tobytes()), log_time=int(log_time_ns))
 
-    def close(self) -> None:
+    def close(self, discard: bool = False) -> None:
         """Finalise the MCAP and move it to its final name; safe to call twice. If finalising fails
-        (disk full), the ``.partial`` file stays for McapSource to recover and the error propagates."""
+        (disk full), the ``.partial`` file stays for McapSource to recover and the error propagates.
+        ``discard`` deletes it instead: ``with`` does so when an error ends a recording before anything
+        was written, so that an earlier file of that name is kept, not replaced by an empty one."""
         if self._closed:
             return
         self._closed = True
@@ -247,7 +249,10 @@ class McapRecorder:
             for channel in self._channels.values():
                 channel.close()
             self._writer.close()
-            os.replace(self.partial_path, self.path)
+            if discard:
+                self.partial_path.unlink(missing_ok=True)
+            else:
+                os.replace(self.partial_path, self.path)
 
 
 @dataclass(frozen=True)
@@ -492,8 +497,8 @@ def read_point_cloud(path: str | os.PathLike, topic: str = FUSED_CLOUD_TOPIC) ->
             reader = make_reader(file, decoder_factories=[DecoderFactory()])
             for _, _, _, message in reader.iter_decoded_messages(topics=[topic]):
                 last = message
-    except (McapError, ValueError, EOFError) as error:
-        raise SourceError(f"{path} is not a readable MCAP file ({type(error).__name__})") from None
+    except (McapError, ValueError, EOFError, OSError) as error:
+        raise SourceError(f"{path} is not a readable MCAP file, or is cut short ({type(error).__name__})") from None
     if last is None:
         raise SourceError(f"{path} has no point cloud on {topic}")
     offsets = {f.name: f.offset for f in last.fields}

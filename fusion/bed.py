@@ -6,30 +6,38 @@ import numpy as np
 import open3d as o3d
 
 
+CAMERA_RANGE = 3.0
+"""Metres. A depth camera looking at a bed is closer than this."""
+
+
 def estimate_bed_frame(points: np.ndarray, distance: float = 0.008, seed: int = 0,
                        robust_scale: float = 0.05) -> np.ndarray:
     """T_input_bed for a cloud of a bed (N, 3) in metres, from a RANSAC plane through the soil (inliers
     within ``distance``) refined by Tukey-weighted least squares of scale ``robust_scale`` (metres).
 
-    z points to the side the sensor looked from: the input origin when it is off the plane (a
-    camera-frame cloud), otherwise the side where most off-plane points lie (caps stand up from
-    the soil). The origin is the centroid's projection onto the plane; x follows the input's x
-    projected onto the plane.
+    z points to the side the sensor looked from: the input origin when it is off the plane and within
+    ``CAMERA_RANGE`` of the cloud (a camera-frame cloud), otherwise the side where most off-plane points
+    lie (caps stand up from the soil): a shifted or georeferenced cloud's origin says nothing of it.
+    The origin is the centroid's projection onto the plane; x follows the input's x projected onto
+    the plane.
     """
     if len(points) < 3:
         raise ValueError("too few points to find the bed plane")
     points = np.asarray(points, np.float64)
+    spread = np.linalg.eigvalsh(np.cov(points.T))
+    if not spread[1] > 1e-12 * max(spread[2], 1e-300):
+        raise ValueError("the points lie on a line or at one point, not on a bed")
     o3d.utility.random.seed(seed)
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     (a, b, c, d), _ = cloud.segment_plane(distance, 3, 200)
     normal, offset = _robust_plane(points, np.array([a, b, c]) / np.linalg.norm([a, b, c]),
                                    d / np.linalg.norm([a, b, c]), robust_scale)
-    if abs(offset) > 0.05:
+    centroid = points.mean(0)
+    if abs(offset) > 0.05 and np.linalg.norm(centroid) < CAMERA_RANGE:
         up = normal if offset > 0 else -normal
     else:
         heights = points @ normal + offset
         up = normal if np.sum(heights > distance) >= np.sum(heights < -distance) else -normal
-    centroid = points.mean(0)
     origin = centroid - (centroid @ normal + offset) * normal
     x = np.array([1.0, 0.0, 0.0]) - up[0] * up
     if np.linalg.norm(x) < 1e-6:

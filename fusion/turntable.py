@@ -93,11 +93,16 @@ class Rig:
         return Rig(turntable, cameras, None if step is None else float(step))
 
     def save(self, path: str | Path) -> None:
-        """Write atomically (a temporary name, then renamed), so a crash never leaves half a rig."""
+        """Write atomically (a temporary name, then renamed), so a crash never leaves half a rig and a
+        failed write leaves the earlier file whole."""
         path = Path(path)
         tmp = path.with_name(path.name + ".partial")
-        tmp.write_text(self.to_json())
-        tmp.replace(path)
+        try:
+            tmp.write_text(self.to_json())
+            tmp.replace(path)
+        except OSError:
+            tmp.unlink(missing_ok=True)
+            raise
 
     @staticmethod
     def load(path: str | Path) -> "Rig":

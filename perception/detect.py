@@ -14,7 +14,7 @@ from perception.cap import Mushroom
 from perception.instances import ClusterConfig, cluster
 from perception.model import LENGTH_UNIT, MushroomNet, voxel_features
 from perception.pose import CapFit, fit_caps
-from perception.sparse import SparseTensor, voxelize
+from perception.sparse import COORD_MAX, SparseTensor, voxelize
 from perception.synthetic.scene import SceneConfig
 
 
@@ -81,6 +81,10 @@ def predict(model: MushroomNet, points: np.ndarray, spacing: float | None = TRAI
     if len(points) == 0:
         empty = np.zeros((0, 3))
         return VoxelPrediction(empty, np.zeros(0), empty, np.zeros(0), np.zeros(0, np.int64))
+    reach, grid = float(np.abs(points).max()), COORD_MAX * model.config.voxel / zoom
+    if not reach < grid:
+        raise ValueError(f"the cloud reaches {reach:.3g} m from the bed origin, beyond the voxel grid's "
+                         f"{grid:.0f} m: bring it near the origin")
     kept = np.arange(len(points))
     if spacing:
         representatives = voxel_representatives(points, spacing)

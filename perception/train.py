@@ -12,6 +12,7 @@ import csv
 import json
 import multiprocessing as mp
 import os
+import queue as queues
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -98,6 +99,49 @@ def augmented_sample(config: TrainConfig, iteration: int) -> dict[str, np.ndarra
     return {"iteration": iteration, "points": points.astype(np.float32), "existence": targets.existence,
             "residual": targets.residual, "orientation": targets.orientation,
             "instance": np.where(targets.existence > 0, scene.instance[keep], -1).astype(np.int64)}
+
+
+class TrainingError(RuntimeError):
+    """A run that cannot go on: its scene generator died, or its loss stopped being finite."""
+
+
+def _resolve_device(device: str | None) -> str:
+    if device is None:
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        kind = torch.device(device).type
+    except RuntimeError:
+        raise ValueError(f"unknown device {device!r}: use cpu or cuda") from None
+    if kind == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {device!r}: this torch ({torch.__version__}) sees no CUDA GPU; use cpu")
+    return device
+
+
+_CHECKPOINT_KEYS = {"model", "optimizer", "scheduler", "torch_rng", "iteration", "elapsed_s", "train_config"}
+
+
+def _load_checkpoint(path: Path, device: str) -> dict:
+    try:
+        state = torch.load(path, map_location=device, weights_only=False)
+        missing = _CHECKPOINT_KEYS - set(state)
+    except Exception as error:
+        raise ValueError(f"{path} is not a readable checkpoint ({type(error).__name__}); restore it, or start "
+                         "again in a new run folder") from None
+    if missing:
+        raise ValueError(f"{path} is not a training checkpoint (no {', '.join(sorted(missing))}); a model.pt "
+                         "cannot be resumed, only fine-tuned with --init")
+    return state
+
+
+def _next_sample(samples: mp.Queue, producer: mp.Process, iteration: int) -> dict:
+    """The producer's next sample; an error, not a wait without end, if the producer has died."""
+    while True:
+        try:
+            return samples.get(timeout=5)
+        except queues.Empty:
+            if not producer.is_alive():
+                raise TrainingError(f"the scene generator stopped (exit code {producer.exitcode}) before "
+                                    f"iteration {iteration + 1}; its error is printed above") from None
 
 
 def _producer(config: TrainConfig, network: NetworkConfig, start: int, stop: int, queue: mp.Queue) -> None:
@@ -190,14 +234,16 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
           max_minutes: float | None = None) -> Path | None:
     """Train (or continue training) into ``run_dir``; returns the final weights, or None when the run
     stopped early (at iteration ``stop_at`` or after ``max_minutes``) with a checkpoint to resume."""
-    run_dir.mkdir(parents=True, exist_ok=True)
-    device = device or ("cuda" if torch.cuda.is_available() else "cpu")
+    device = _resolve_device(device)
     checkpoint_path = run_dir / "checkpoint.pt"
+    if resume and not checkpoint_path.is_file():
+        raise ValueError(f"no checkpoint to resume in {run_dir}: check --out, or drop --resume to start a new run")
+    run_dir.mkdir(parents=True, exist_ok=True)
     network_config = NETWORK_PRESETS[config.network]
     torch.manual_seed(config.seed)
     model = MushroomNet(network_config).to(device)
     init = None
-    if config.init_weights and not (resume and checkpoint_path.exists()):
+    if config.init_weights and not resume:
         initial, base = load_weights(Path(config.init_weights), device)
         if initial.config != network_config:
             raise ValueError(f"{config.init_weights} holds a different network than {config.network!r}; "
@@ -208,8 +254,8 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
     milestones = [int(f * config.iterations) for f in config.milestones]
     scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, milestones, config.gamma)
     start, elapsed_before = 0, 0.0
-    if resume and checkpoint_path.exists():
-        state = torch.load(checkpoint_path, map_location=device, weights_only=False)
+    if resume:
+        state = _load_checkpoint(checkpoint_path, device)
         # runs saved before a field existed ran with its default
         if {**TrainConfig().to_dict(), **state["train_config"]} != config.to_dict():
             raise ValueError(f"{checkpoint_path} was made with a different configuration; "
@@ -249,12 +295,16 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
                dynamic_ncols=True)
     session_start = time.perf_counter()
 
+    saved_at = start
+
     def save(iteration: int) -> None:
+        nonlocal saved_at
         _atomic_save({"model": model.state_dict(), "optimizer": optimizer.state_dict(),
                       "scheduler": scheduler.state_dict(), "torch_rng": torch.get_rng_state(),
                       "iteration": iteration, "elapsed_s": elapsed_before + time.perf_counter() - session_start,
                       "train_config": config.to_dict(), "network": network_config.to_dict(), "init": init},
                      checkpoint_path)
+        saved_at = iteration
 
     end = config.iterations if stop_at is None else min(stop_at, config.iterations)
     deadline = None if max_minutes is None else session_start + 60 * max_minutes
@@ -263,12 +313,16 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
             if deadline is not None and time.perf_counter() > deadline:
                 end = iteration
                 break
-            sample = queue.get(timeout=600)
+            sample = _next_sample(queue, producer, iteration)
             assert sample["iteration"] == iteration
             tensors = {k: torch.from_numpy(v).to(device) for k, v in sample.items() if k != "iteration"}
             output = model(SparseTensor(tensors["features"], tensors["coords"]))
             terms = loss_terms(output, tensors["existence"], tensors["residual"], tensors["orientation"], config,
                                tensors["cap_weight"])
+            if not torch.isfinite(terms["total"]):
+                kept = f"the checkpoint in {run_dir} is from iteration {saved_at}" if saved_at else "no checkpoint kept"
+                raise TrainingError(f"the loss is no longer finite at iteration {iteration + 1} (learning rate or "
+                                    f"loss weights too large?); {kept}")
             optimizer.zero_grad(set_to_none=True)
             terms["total"].backward()
             optimizer.step()
@@ -309,7 +363,8 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
     weights = run_dir / "model.pt"
     state = torch.load(checkpoint_path, map_location="cpu", weights_only=False)
     model.load_state_dict(state["model"])
-    meta = {"train_config": state["train_config"], "iterations": state["iteration"], "train_seconds": state["elapsed_s"]}
+    meta = {"train_config": state["train_config"], "iterations": state["iteration"],
+            "train_seconds": state["elapsed_s"]}
     if state.get("init"):
         # a fine-tuned model's cost includes the run it started from
         meta["init"] = state["init"]
@@ -348,6 +403,8 @@ def load_weights(path: Path, device: str = "cpu") -> tuple[MushroomNet, dict]:
         raise
     except Exception as error:
         raise ValueError(f"{path} is not a mushroom-pose weights file ({type(error).__name__})") from None
+    if not all(torch.isfinite(value).all() for value in model.state_dict().values() if value.is_floating_point()):
+        raise ValueError(f"{path} holds weights that are not finite numbers (a training run that diverged)")
     model.eval()
     return model, {k: v for k, v in state.items() if k not in ("model", "optimizer", "scheduler", "torch_rng")}
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
@@ -29,14 +30,34 @@ def _writable_dir(path: str) -> Path:
     return directory
 
 
-def _writable_file(path: str | None) -> Path | None:
+def _writable_file(path: str | None, inputs: tuple[str | None, ...] = ()) -> Path | None:
+    """An output file's path, its folder created; refused when it is a folder, a device or other
+    special file, or one of ``inputs`` (writing it would destroy the input). A symlink resolves to
+    its target, which is then replaced."""
     if path is None:
         return None
-    file = Path(path)
+    file = Path(path).resolve() if Path(path).is_symlink() else Path(path)
     if file.is_dir():
         raise CliError(f"{file} is a folder, expected a file name")
+    if file.exists() and not file.is_file():
+        raise CliError(f"{file} is not a regular file; pick a file name to write")
+    for source in inputs:
+        if source is not None and Path(source).exists() and file.exists() and file.samefile(source):
+            raise CliError(f"{path} is also an input of this command; pick another name to write")
     _writable_dir(str(file.parent if str(file.parent) else "."))
     return file
+
+
+def _replace_file(path: Path, text: str) -> None:
+    """Write through a temporary file renamed over ``path``: a failed write leaves an earlier file
+    whole and no temporary file behind."""
+    tmp = path.with_name(path.name + ".partial")
+    try:
+        tmp.write_text(text)
+        tmp.replace(path)
+    except OSError as error:
+        tmp.unlink(missing_ok=True)
+        raise CliError(f"cannot write {path}: {error.strerror or error}") from None
 
 
 def _positive(kind):
@@ -44,11 +65,41 @@ def _positive(kind):
         try:
             value = kind(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+            raise argparse.ArgumentTypeError(f"expected {'a whole number' if kind is int else 'a number'}, "
+                                             f"got {text!r}") from None
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
         if value <= 0:
             raise argparse.ArgumentTypeError(f"must be positive, got {text}")
         return value
     return parse
+
+
+def _seed(text: str) -> int:
+    value = _non_negative_int(text)
+    if value >= 2**63:
+        raise argparse.ArgumentTypeError(f"must be below 2^63, got {text}")
+    return value
+
+
+def _threads(text: str) -> int:
+    import os
+
+    value, cores = _positive(int)(text), os.cpu_count() or 1
+    if value > 4 * cores:
+        raise argparse.ArgumentTypeError(f"at most {4 * cores} (4 per core; this machine has {cores}), got {text}")
+    return value
+
+
+MAX_MUSHROOMS = 300
+"""More than a 0.5 m bed holds (about 260 caps when packed): asking for more only slows the placer."""
+
+
+def _mushroom_count(text: str) -> int:
+    value = _non_negative_int(text)
+    if value > MAX_MUSHROOMS:
+        raise argparse.ArgumentTypeError(f"at most {MAX_MUSHROOMS} (a 0.5 m bed is full at about 260), got {text}")
+    return value
 
 
 def _non_negative_int(text: str) -> int:
@@ -71,6 +122,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
         raise CliError(f"--mushrooms range is inverted: {low} > {high}")
     out = _writable_dir(args.out)
     rrd = _writable_file(args.rrd)
+    preview = _writable_file(args.preview)
     if args.preset:
         preset = PRESETS[args.preset]
         seeds = scene_seeds(preset.seed, preset.scenes)
@@ -91,12 +143,15 @@ def cmd_synth(args: argparse.Namespace) -> int:
     print(f"scenes: {len(seeds)}  mushrooms: {sum(mushrooms)} (per scene {min(mushrooms, default=0)}-"
           f"{max(mushrooms, default=0)})  points: {sum(points)} (median {np.median(points) if points else 0:.0f} "
           f"per scene)  visibility: {config.visibility}  time: {elapsed:.1f} s  -> {out}")
+    short = sum(count < config.mushrooms[0] for count in mushrooms)
+    if short:
+        print(f"note: {short} of {len(seeds)} scenes hold fewer than {config.mushrooms[0]} mushrooms: the bed "
+              "had no room for more", file=sys.stderr)
     if rrd is not None:
         print(f"rerun recording: {rrd}")
-    if args.preview:
+    if preview is not None:
         from pipeline.preview import render_bed_preview
 
-        preview = _writable_file(args.preview)
         render_bed_preview(seeds[0], config, preview)
         print(f"preview of the first scene: {preview}")
     return 0
@@ -124,16 +179,16 @@ def train_config(args: argparse.Namespace):
 
 def cmd_train(args: argparse.Namespace) -> int:
     from perception.model import PRESETS as NETWORK_PRESETS
-    from perception.train import train
+    from perception.train import TrainingError, train
 
     if args.network not in NETWORK_PRESETS:
         raise CliError(f"unknown network {args.network!r}; choose one of {sorted(NETWORK_PRESETS)}")
-    resuming = args.resume and (Path(args.out) / "checkpoint.pt").is_file()
-    if args.init and not resuming and not Path(args.init).is_file():
+    if args.init and not args.resume and not Path(args.init).is_file():
         raise CliError(f"--init: no weights file at {args.init}")
     low, high = args.scale_jitter
     if low > high:
         raise CliError(f"--scale-jitter wants LOW HIGH with LOW <= HIGH, got {low} {high}")
+    new_folder = not Path(args.out).exists()
     run_dir = _writable_dir(args.out)
     if (run_dir / "checkpoint.pt").exists() and not args.resume:
         raise CliError(f"{run_dir} already holds a checkpoint: add --resume to continue it, or pick a new --out")
@@ -142,7 +197,9 @@ def cmd_train(args: argparse.Namespace) -> int:
     try:
         weights = train(config, run_dir, resume=args.resume, device=args.device, progress=not args.quiet,
                         max_minutes=args.max_minutes)
-    except ValueError as error:
+    except (ValueError, TrainingError) as error:
+        if new_folder and not any(run_dir.iterdir()):
+            run_dir.rmdir()
         raise CliError(str(error)) from None
     if weights is None:
         print(f"stopped after {args.max_minutes} minutes with a checkpoint in {run_dir}: continue with the same "
@@ -185,14 +242,16 @@ def cmd_detect(args: argparse.Namespace) -> int:
     from pipeline.clouds import load_cloud
     from pipeline.rerun_sink import rerun_stream
 
-    out = _writable_file(args.out)
-    rrd = _writable_file(args.rrd)
     try:
         cloud = load_cloud(Path(args.cloud))
     except ValueError as error:
         raise CliError(str(error)) from None
+    out = _writable_file(args.out, inputs=(args.cloud,))
+    rrd = _writable_file(args.rrd, inputs=(args.cloud,))
+    if rrd is not None and rrd.resolve() == out.resolve():
+        raise CliError(f"--out and --rrd are both {args.out}; give them different names")
     if cloud.unit_scale != 1.0:
-        print(f"note: {args.cloud} spans {np.ptp(cloud.points / cloud.unit_scale, axis=0).max():.0f} units, "
+        print(f"note: {args.cloud} spans {cloud.extent:.0f} units, "
               "so it is read as millimetres and converted to metres", file=sys.stderr)
     model, _ = _load_model(args.model)
     points = cloud.points
@@ -205,7 +264,10 @@ def cmd_detect(args: argparse.Namespace) -> int:
             raise CliError(f"cannot find the bed plane: {error}") from None
         frame = "input"
     bed_points = transform_points(np.linalg.inv(T_input_bed), points)
-    result = detect_points(model, bed_points, ClusterConfig(method=args.clustering))
+    try:
+        result = detect_points(model, bed_points, ClusterConfig(method=args.clustering))
+    except ValueError as error:
+        raise CliError(str(error)) from None
     result = transform_result(result, T_input_bed, frame)
     up = T_input_bed[:3, 2]
     print(f"{len(result.mushrooms)} caps in {args.cloud} ({len(points)} points, frame: {frame}, metres)")
@@ -218,9 +280,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     text = detections_json(result.mushrooms, frame)
     payload = json.loads(text)
     payload["T_input_bed"] = T_input_bed.tolist()
-    tmp = out.with_name(out.name + ".partial")
-    tmp.write_text(json.dumps(payload, indent=1))
-    tmp.replace(out)
+    _replace_file(out, json.dumps(payload, indent=1))
     with rerun_stream(rrd) as rec:
         if rec is not None:
             log_rerun(rec, result, points)
@@ -264,14 +324,15 @@ def cmd_eval(args: argparse.Namespace) -> int:
     model, meta = _load_model(args.model)
     report = {}
     for name in args.set:
-        scenes = load_preset(name, args.visibility, progress=not args.quiet, limit=args.scenes)
+        try:
+            scenes = load_preset(name, args.visibility, progress=not args.quiet, limit=args.scenes)
+        except ValueError as error:
+            raise CliError(str(error)) from None
         results = evaluate_on_scenes(model, scenes, height=args.height, axis=args.axis, progress=not args.quiet)
         print(_eval_table(name + (f" (first {len(scenes)} scenes)" if args.scenes else ""), results))
         report[name] = {method: result.as_dict() for method, result in results.items()}
     if json_path is not None:
-        tmp = json_path.with_name(json_path.name + ".partial")
-        tmp.write_text(json.dumps(report, indent=1))
-        tmp.replace(json_path)
+        _replace_file(json_path, json.dumps(report, indent=1))
     return 0
 
 
@@ -315,12 +376,15 @@ def cmd_record(args: argparse.Namespace) -> int:
     out = _writable_file(args.out)
     if out.exists() and not args.overwrite:
         raise CliError(f"{out} exists: pass --overwrite to replace it")
+    written = [0]
     try:
         source = make_source(args.camera, args.serial, args.seed, args.views)
         with source:
-            summary = record(source, out, args.duration, progress=not args.quiet, overwrite=args.overwrite)
+            summary = record(source, out, args.duration, progress=not args.quiet, overwrite=args.overwrite,
+                             on_frame=lambda frames, _: written.__setitem__(0, frames))
     except SourceError as error:
-        kept = f"; the frames recorded so far are in {out}" if out.exists() else ""
+        kept = (f"; the {written[0]} frames recorded so far are in {out}" if written[0]
+                else "; nothing was recorded" + (f", {out} is as it was" if out.exists() else ""))
         raise CliError(f"{args.camera} camera: {error}{kept}") from None
     except (ImportError, FileExistsError, ValueError) as error:
         raise CliError(str(error)) from None
@@ -334,7 +398,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from capture.source import SourceError
     from fusion.turntable import estimate_rig
 
-    out = _writable_file(args.out)
+    out = _writable_file(args.out, inputs=(args.session,))
     try:
         with McapSource(args.session) as session:
             frames = list(session)
@@ -344,7 +408,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         rig = estimate_rig(frames, reference=args.reference)
     except (SourceError, ValueError) as error:
         raise CliError(str(error)) from None
-    rig.save(out)
+    try:
+        rig.save(out)
+    except OSError as error:
+        raise CliError(f"cannot write {out}: {error.strerror or error}") from None
     cameras = ", ".join(sorted(rig.cameras)) or frames[0].sensor_id
     turntable = "no turntable (fewer than 3 frames of the reference camera)"
     if rig.turntable is not None:
@@ -363,8 +430,8 @@ def build_parser() -> argparse.ArgumentParser:
     synth = sub.add_parser("synth", help="generate synthetic mushroom beds with ground truth")
     synth.add_argument("--preset", choices=["val50", "test50"], help="a fixed evaluation set")
     synth.add_argument("--scenes", type=_positive(int), default=10, help="number of scenes (default 10)")
-    synth.add_argument("--seed", type=_non_negative_int, default=0, help="base seed (default 0)")
-    synth.add_argument("--mushrooms", type=_non_negative_int, nargs=2, default=(5, 45), metavar=("LOW", "HIGH"),
+    synth.add_argument("--seed", type=_seed, default=0, help="base seed (default 0)")
+    synth.add_argument("--mushrooms", type=_mushroom_count, nargs=2, default=(5, 45), metavar=("LOW", "HIGH"),
                        help="mushrooms per scene, inclusive range (default 5 45)")
     synth.add_argument("--visibility", choices=["hpr", "camera", "katz"], default="hpr",
                        help="hpr: hidden point removal (z-buffer); camera: virtual depth camera; "
@@ -384,7 +451,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "model's: slim U-Net fed normals and each centroid's place in its voxel), slim-n (normals "
                        "only), slim (occupancy only, as the paper), wide-no (slim-no with wider coarse levels) "
                        "or fcgf (the paper's full backbone)")
-    train.add_argument("--seed", type=_non_negative_int, default=0)
+    train.add_argument("--seed", type=_seed, default=0)
     train.add_argument("--checkpoint-every", type=_positive(int), default=200)
     train.add_argument("--validate-every", type=_positive(int), default=1000)
     train.add_argument("--validation-scenes", type=_non_negative_int, default=5,
@@ -408,7 +475,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--max-minutes", type=_positive(float),
                        help="stop cleanly with a checkpoint after this many minutes (resume later)")
     train.add_argument("--device", help="cpu or cuda (default: cuda when available)")
-    train.add_argument("--threads", type=_positive(int), help="torch threads (default: all cores)")
+    train.add_argument("--threads", type=_threads, help="torch threads (default: all cores)")
     train.add_argument("--quiet", action="store_true", help="no progress bar")
     train.set_defaults(run=cmd_train)
 
@@ -440,12 +507,12 @@ def build_parser() -> argparse.ArgumentParser:
                           "detection, Rerun (no hardware)")
     demo.add_argument("--out", default="demo", help="output folder (default ./demo): session.mcap, "
                       "detections.json, demo.rrd")
-    demo.add_argument("--seed", type=_non_negative_int, default=0, help="which synthetic bed")
+    demo.add_argument("--seed", type=_seed, default=0, help="which synthetic bed")
     demo.add_argument("--views", type=_positive(int), default=18, help="turntable views (default 18)")
     demo.add_argument("--model", help="weights file (default: the shipped model)")
     demo.add_argument("--spawn", action="store_true", help="also show the run in a Rerun viewer")
     demo.add_argument("--no-rrd", action="store_true", help="do not write demo.rrd")
-    demo.add_argument("--threads", type=_positive(int), help="torch threads (default: all cores)")
+    demo.add_argument("--threads", type=_threads, help="torch threads (default: all cores)")
     demo.add_argument("--quiet", action="store_true", help="no progress bar")
     demo.set_defaults(run=cmd_demo)
 
@@ -458,7 +525,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--out", required=True, help="the .mcap file to write")
     rec.add_argument("--duration", type=_positive(float), help="seconds to record (default: until the "
                      "source ends or Ctrl-C)")
-    rec.add_argument("--seed", type=_non_negative_int, default=0, help="virtual camera: which synthetic bed")
+    rec.add_argument("--seed", type=_seed, default=0, help="virtual camera: which synthetic bed")
     rec.add_argument("--views", type=_positive(int), default=18, help="virtual camera: turntable views")
     rec.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     rec.add_argument("--quiet", action="store_true")

@@ -9,7 +9,10 @@ import numpy as np
 
 CLOUD_SUFFIXES = (".ply", ".pcd", ".npz", ".mcap")
 MILLIMETRE_EXTENT = 20.0
-"""A bed is under a few metres across: a cloud spanning more than this many units is in millimetres."""
+"""A bed is under a few metres across: a cloud spanning more than this many units is in millimetres.
+The span is taken between the 1st and 99th percentiles, so that a few stray points do not decide it."""
+_PLY_SIZES = {"char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2,
+              "int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
 
 
 @dataclass(frozen=True)
@@ -20,6 +23,8 @@ class LoadedCloud:
     """True for our synthetic scenes, which are stored in the bed frame."""
     unit_scale: float = 1.0
     """Metres per input unit (0.001 when the file was in millimetres)."""
+    extent: float = 0.0
+    """The cloud's largest span in input units, between the 1st and 99th percentiles."""
 
 
 def load_cloud(path: Path) -> LoadedCloud:
@@ -27,13 +32,16 @@ def load_cloud(path: Path) -> LoadedCloud:
     path = Path(path)
     if not path.exists():
         raise ValueError(f"{path} does not exist")
+    if path.is_dir():
+        raise ValueError(f"{path} is a folder, not a cloud file")
     suffix = path.suffix.lower()
     if suffix == ".npz":
         try:
             with np.load(path) as data:
                 points = np.asarray(data["points"], np.float64)
         except Exception as error:
-            raise ValueError(f"{path} is not a mushroom-pose scene (.npz with 'points'): {type(error).__name__}") from None
+            raise ValueError(f"{path} is not a mushroom-pose scene (.npz with 'points'): "
+                             f"{str(error).splitlines()[0] if str(error) else type(error).__name__}") from None
         in_bed = True
     elif suffix == ".mcap":
         from capture.mcap_io import read_point_cloud
@@ -47,13 +55,16 @@ def load_cloud(path: Path) -> LoadedCloud:
     elif suffix in (".ply", ".pcd"):
         import open3d as o3d
 
+        if suffix == ".ply":
+            _check_binary_ply_length(path)
         cloud = o3d.io.read_point_cloud(str(path))
         points = np.asarray(cloud.points, np.float64)
         if len(points) == 0:
             raise ValueError(f"{path}: the cloud is empty or not a readable {suffix} file")
         in_bed = False
     else:
-        raise ValueError(f"{path}: unsupported cloud format {suffix or '(none)'}; use one of {', '.join(CLOUD_SUFFIXES)}")
+        raise ValueError(f"{path}: unsupported cloud format {suffix or '(none)'}; "
+                         f"use one of {', '.join(CLOUD_SUFFIXES)}")
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"{path}: expected N x 3 points, got shape {points.shape}")
     finite = np.isfinite(points).all(1)
@@ -63,9 +74,43 @@ def load_cloud(path: Path) -> LoadedCloud:
     if len(points) == 0:
         raise ValueError(f"{path}: the cloud is empty")
     scale = 1.0
-    extent = float(np.max(points.max(0) - points.min(0)))
+    low, high = np.percentile(points, [1, 99], axis=0)
+    extent = float(np.max(high - low))
     if extent > MILLIMETRE_EXTENT:
         scale = 0.001
         points = points * scale
-    return LoadedCloud(points, in_bed, scale)
+    return LoadedCloud(points, in_bed, scale, extent)
 
+
+
+def _check_binary_ply_length(path: Path) -> None:
+    """ValueError if a binary PLY is shorter than its header's vertices need. Open3D reads a cut-short
+    file without an error, filling the missing points with zeros."""
+    with open(path, "rb") as file:
+        head = file.read(65536)
+    end = head.find(b"end_header")
+    if not head.startswith(b"ply") or end < 0:
+        return
+    header_bytes = head.index(b"\n", end) + 1
+    lines = head[:end].decode("ascii", "replace").split("\n")
+    if not any(line.split()[:2] in (["format", "binary_little_endian"], ["format", "binary_big_endian"])
+               for line in lines):
+        return
+    vertices, record, in_vertex = None, 0, False
+    for words in (line.split() for line in lines):
+        if words[:1] == ["element"] and len(words) == 3:
+            if in_vertex:
+                break
+            in_vertex = words[1] == "vertex"
+            if in_vertex and words[2].isdigit():
+                vertices = int(words[2])
+        elif in_vertex and words[:1] == ["property"]:
+            if len(words) != 3 or words[1] not in _PLY_SIZES:
+                return
+            record += _PLY_SIZES[words[1]]
+    if vertices is None:
+        return
+    needed = header_bytes + vertices * record
+    if path.stat().st_size < needed:
+        raise ValueError(f"{path} is cut short: its header lists {vertices} points ({needed} bytes) but the file "
+                         f"has {path.stat().st_size} bytes")

@@ -93,3 +93,38 @@ def test_a_loss_weight_that_is_not_positive_gives_one_line_and_exit_2(tmp_path):
     assert result.returncode == 2 and "Traceback" not in result.stderr
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "--weight-existence" in lines[0] and "positive" in lines[0], result.stderr
+
+
+@pytest.mark.parametrize("args, message", [
+    (["synth", "--mushrooms", "5", "100000", "--out", "OUT"], "at most 300"),
+    (["train", "--out", "OUT", "--lr", "nan"], "must be a finite number"),
+    (["train", "--out", "OUT", "--scale-jitter", "1", "inf"], "must be a finite number"),
+    (["train", "--out", "OUT", "--seed", "99999999999999999999999"], "below 2^63"),
+    (["train", "--out", "OUT", "--threads", "100000"], "4 per core"),
+    (["train", "--out", "OUT", "--resume"], "no checkpoint to resume"),
+    (["train", "--out", "OUT", "--device", "gpu", "--validation-scenes", "0"], "unknown device"),
+    (["record", "--camera", "virtual", "--out", "OUT/r.mcap", "--duration", "inf"], "must be a finite number"),
+])
+def test_bad_numbers_and_runs_give_one_line_and_exit_2(tmp_path, capsys, args, message):
+    from pipeline.cli import main
+
+    args = [a.replace("OUT", str(tmp_path / "out")) for a in args]
+    try:
+        code = main(args)
+    except SystemExit as exit_:
+        code = exit_.code
+    stderr = capsys.readouterr().err
+    assert code == 2 and "Traceback" not in stderr
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_synth_says_when_a_bed_is_full(tmp_path, capsys):
+    from pipeline.cli import main
+
+    assert main(["synth", "--scenes", "1", "--mushrooms", "290", "290", "--no-ply", "--quiet",
+                 "--out", str(tmp_path)]) == 0
+    placed = len(SyntheticScene.load(next(tmp_path.glob("*.npz"))).centers)
+    assert placed < 290
+    assert "1 of 1 scenes hold fewer than 290 mushrooms" in capsys.readouterr().err

@@ -72,6 +72,8 @@ def test_detect_writes_json_in_the_input_frame(tmp_path, weights, scene_ply):
 @pytest.mark.parametrize("case, fragment", [
     ("nan", "NaN or infinite"), ("empty", "empty"), ("missing", "does not exist"), ("format", "unsupported"),
     ("corrupt-model", "not a mushroom-pose weights file"), ("missing-model", "does not exist"),
+    ("folder", "is a folder"), ("line", "on a line"), ("far", "beyond the voxel grid"),
+    ("diverged-model", "not finite"),
 ])
 def test_detect_bad_input(tmp_path, weights, case, fragment):
     cloud = write_ply(tmp_path / "c.ply", np.random.default_rng(0).uniform(-0.2, 0.2, (500, 3)) * [1, 1, 0.05])
@@ -94,10 +96,67 @@ def test_detect_bad_input(tmp_path, weights, case, fragment):
         model.write_bytes(b"not a torch file")
     elif case == "missing-model":
         model = tmp_path / "none.pt"
+    elif case == "folder":
+        cloud = tmp_path / "clouds.ply"
+        cloud.mkdir()
+    elif case == "line":
+        cloud = write_ply(tmp_path / "line.ply", np.outer(np.linspace(0, 0.3, 500), [1.0, 0.5, 0.0]))
+    elif case == "far":
+        points = np.random.default_rng(0).uniform(-0.2, 0.2, (500, 3)) * [1, 1, 0.05] + [0.0, 0.0, 500.0]
+        np.savez(tmp_path / "far.npz", points=points)
+        cloud = tmp_path / "far.npz"
+    elif case == "diverged-model":
+        import torch
+
+        from perception.train import load_weights, save_weights
+
+        network, meta = load_weights(weights)
+        with torch.no_grad():
+            next(network.parameters()).fill_(float("nan"))
+        model = tmp_path / "diverged.pt"
+        save_weights(network, model, **meta)
     out = tmp_path / "det.json"
     out.write_text("previous result")
     one_line_error(run("detect", cloud, "--model", model, "--out", out), fragment)
     assert out.read_text() == "previous result"
+
+
+def test_a_cut_short_binary_ply_is_refused(tmp_path, weights, scene_ply):
+    ply, _ = scene_ply
+    data = ply.read_bytes()
+    assert data.startswith(b"ply") and b"binary_little_endian" in data[:200]
+    cut = tmp_path / "cut.ply"
+    cut.write_bytes(data[: len(data) // 2])
+    one_line_error(run("detect", cut, "--model", weights, "--out", tmp_path / "d.json"), "is cut short")
+    assert len(load_cloud(ply).points) > 0
+
+
+@pytest.mark.parametrize("name", ["--out", "--rrd"])
+def test_an_output_that_is_the_input_is_refused(tmp_path, weights, scene_ply, name):
+    ply, _ = scene_ply
+    cloud = tmp_path / "bed.ply"
+    cloud.write_bytes(ply.read_bytes())
+    args = ["--out", tmp_path / "d.json", "--rrd", tmp_path / "d.rrd"]
+    args[args.index(name) + 1] = cloud
+    one_line_error(run("detect", cloud, "--model", weights, *args), "also an input")
+    assert cloud.read_bytes() == ply.read_bytes()
+
+
+def test_a_failed_write_leaves_no_temporary_file(tmp_path):
+    from pipeline.cli import CliError, _replace_file
+
+    target = tmp_path / "taken"
+    target.mkdir()
+    (target / "inside").write_text("x")
+    with pytest.raises(CliError, match="cannot write"):
+        _replace_file(target, "{}")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["taken"]
+
+
+def test_a_stray_point_does_not_make_a_metre_cloud_millimetres(tmp_path, scene_ply):
+    _, scene = scene_ply
+    points = np.vstack([scene.points, [[25.0, 0.0, 0.0]]])
+    assert load_cloud(write_ply(tmp_path / "stray.ply", points)).unit_scale == 1.0
 
 
 def test_fused_clouds_are_read_from_mcap(tmp_path, scene_ply, weights):

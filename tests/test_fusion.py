@@ -279,6 +279,18 @@ def test_icp_pyramid_of_a_tilted_plane():
         assert np.all(np.einsum("ij,ij->i", normals, points) < 0)
 
 
+@pytest.mark.parametrize("offset", [(1000.0, 1000.0, 10.0), (0.0, 0.0, 50.0)])
+def test_a_far_origin_does_not_decide_which_side_is_up(offset):
+    """A shifted or georeferenced cloud's origin lies far off the bed, below it here: up must still point
+    out of the soil, the way the caps stand (the synthetic bed is stored z up)."""
+    from fusion.bed import estimate_bed_frame
+    from perception.synthetic.scene import SceneConfig, generate_scene
+
+    scene = generate_scene(2, SceneConfig(mushrooms=(10, 10)))
+    T = estimate_bed_frame(scene.points + np.array(offset))
+    assert T[2, 2] > np.cos(np.radians(5))
+
+
 @pytest.mark.parametrize("seed", [100, 102])
 def test_bed_plane_follows_cloddy_soil(seed):
     """The bed frame's z is the soil's least-squares normal (to 1.5 deg; measured 0.8-1.0) under a tilt

@@ -65,6 +65,17 @@ def test_unplugged_camera_keeps_the_recording_and_says_so(tmp_path, monkeypatch)
     np.testing.assert_array_equal(kept[-1].depth, frames[-1].depth)
 
 
+def test_a_camera_that_gives_nothing_says_so_and_keeps_the_old_file(tmp_path, monkeypatch):
+    import pipeline.sources
+
+    monkeypatch.setattr(pipeline.sources, "make_source", lambda *a, **k: UnpluggedAfter([]))
+    out = tmp_path / "old.mcap"
+    out.write_bytes(b"an earlier session")
+    one_line_error(run("record", "--camera", "realsense", "--out", out, "--overwrite", "--quiet"),
+                   "nothing was recorded")
+    assert out.read_bytes() == b"an earlier session"
+
+
 def test_depth_and_colour_of_different_sizes_are_refused():
     from capture.frames import CameraIntrinsics, DepthFrame
 

@@ -173,3 +173,18 @@ def test_voxel_representatives_keep_the_first_point_of_every_voxel():
         keys = np.floor(points / 0.005).astype(np.int64)
         _, first = np.unique(keys, axis=0, return_index=True)
         np.testing.assert_array_equal(voxel_representatives(points, 0.005), np.sort(first))
+
+
+def test_a_corrupt_cached_scene_is_made_again(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("MUSHROOM_POSE_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setitem(PRESETS, "tiny", PRESETS["val50"].__class__(seed=3, scenes=2))
+    first = load_preset("tiny", progress=False)
+    broken = sorted((tmp_path / "cache").rglob("*.npz"))[1]
+    broken.write_bytes(broken.read_bytes()[:100])
+    again = load_preset("tiny", progress=False)
+    assert "unreadable" in capsys.readouterr().err
+    np.testing.assert_array_equal(first[1].points, again[1].points)
+    np.testing.assert_array_equal(SyntheticScene.load(broken).points, first[1].points)
+    monkeypatch.setenv("MUSHROOM_POSE_CACHE", str(broken))
+    with pytest.raises(ValueError, match="cannot write the tiny cache"):
+        load_preset("tiny", progress=False)

@@ -7,7 +7,8 @@ import torch
 from perception.model import LENGTH_UNIT, PRESETS, MushroomNet, NetworkConfig
 from perception.sparse import SparseTensor
 from perception.synthetic.scene import SceneConfig
-from perception.train import TrainConfig, augmented_sample, load_weights, loss_terms, train, voxel_targets
+from perception.train import (TrainConfig, TrainingError, augmented_sample, load_weights, loss_terms, train,
+                              voxel_targets)
 
 TINY = NetworkConfig(channels=(8, 8, 8, 8), up_channels=(8, 8, 8, 8), first_kernel=3, head_hidden=(8, 8))
 SMALL_SCENES = SceneConfig(mushrooms=(3, 5))
@@ -165,6 +166,50 @@ def test_resume_with_other_flags_is_refused(tmp_path, tiny_network):
     train(config, tmp_path, progress=False, rerun=False, stop_at=1)
     with pytest.raises(ValueError, match="different configuration"):
         train(TrainConfig(**{**config.__dict__, "lr": 0.5}), tmp_path, resume=True, progress=False, rerun=False)
+
+
+def test_resume_needs_a_readable_checkpoint(tmp_path, tiny_network):
+    config = TrainConfig(iterations=2, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
+    with pytest.raises(ValueError, match="no checkpoint to resume"):
+        train(config, tmp_path / "typo", resume=True, progress=False, rerun=False)
+    assert not (tmp_path / "typo").exists()
+    train(config, tmp_path / "run", progress=False, rerun=False)
+    checkpoint = tmp_path / "run" / "checkpoint.pt"
+    checkpoint.write_bytes(checkpoint.read_bytes()[:1000])
+    with pytest.raises(ValueError, match="not a readable checkpoint"):
+        train(config, tmp_path / "run", resume=True, progress=False, rerun=False)
+    (tmp_path / "run" / "model.pt").replace(checkpoint)
+    with pytest.raises(ValueError, match="not a training checkpoint"):
+        train(config, tmp_path / "run", resume=True, progress=False, rerun=False)
+
+
+def test_a_diverging_run_stops_with_an_error_and_writes_no_model(tmp_path, tiny_network):
+    config = TrainConfig(iterations=6, lr=1e30, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES,
+                         queue_size=2)
+    with pytest.raises(TrainingError, match="no longer finite"):
+        train(config, tmp_path, progress=False, rerun=False)
+    assert not (tmp_path / "model.pt").exists()
+
+
+def test_a_dead_scene_generator_stops_the_run(tmp_path, tiny_network, monkeypatch):
+    import perception.train as training
+
+    def broken(config, iteration):
+        raise RuntimeError("no scene")
+
+    monkeypatch.setattr(training, "augmented_sample", broken)  # the forked generator inherits it
+    config = TrainConfig(iterations=2, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
+    with pytest.raises(TrainingError, match="scene generator stopped"):
+        train(config, tmp_path, progress=False, rerun=False)
+
+
+def test_a_device_torch_cannot_use_is_refused(tmp_path, tiny_network):
+    config = TrainConfig(iterations=2, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
+    with pytest.raises(ValueError, match="unknown device"):
+        train(config, tmp_path, device="gpu", progress=False, rerun=False)
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="no CUDA"):
+            train(config, tmp_path, device="cuda", progress=False, rerun=False)
 
 
 def test_network_runs_on_any_device_and_predicts_five_values():

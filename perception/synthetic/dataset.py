@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
@@ -31,8 +32,12 @@ def scene_seeds(base_seed: int, count: int) -> list[int]:
     return [int(s) for s in np.random.SeedSequence(base_seed).generate_state(count, dtype=np.uint32)]
 
 
+CACHE_ENV = "MUSHROOM_POSE_CACHE"
+"""Where the evaluation presets are cached (default ~/.cache/mushroom-pose)."""
+
+
 def cache_root() -> Path:
-    return Path(os.environ.get("MUSHROOM_POSE_CACHE", Path.home() / ".cache" / "mushroom-pose"))
+    return Path(os.environ.get(CACHE_ENV, Path.home() / ".cache" / "mushroom-pose"))
 
 
 def preset_dir(name: str, visibility: str = "hpr") -> Path:
@@ -90,15 +95,26 @@ def load_preset(name: str, visibility: str = "hpr", progress: bool = True,
     scenes = []
     config = SceneConfig(**{**preset.config.__dict__, "visibility": visibility})
     count = preset.scenes if limit is None else min(limit, preset.scenes)
-    missing = [i for i in range(count) if not scene_path(directory, i).exists()]
-    if missing:
-        directory.mkdir(parents=True, exist_ok=True)
-        for index, scene in zip(missing, generate_many([seeds[i] for i in missing], config, progress,
-                                                       f"making {name}")):
-            write_scene(scene, directory, index, ply=False)
+    scenes: dict[int, SyntheticScene] = {}
     for index in range(count):
-        scenes.append(SyntheticScene.load(scene_path(directory, index)))
-    return scenes
+        path = scene_path(directory, index)
+        if path.is_file():
+            try:
+                scenes[index] = SyntheticScene.load(path)
+            except Exception as error:
+                print(f"warning: the cached {path} is unreadable ({type(error).__name__}); making it again",
+                      file=sys.stderr)
+    missing = [i for i in range(count) if i not in scenes]
+    if missing:
+        try:
+            directory.mkdir(parents=True, exist_ok=True)
+            for index, scene in zip(missing, generate_many([seeds[i] for i in missing], config, progress,
+                                                           f"making {name}")):
+                scenes[index] = SyntheticScene.load(write_scene(scene, directory, index, ply=False))
+        except OSError as error:
+            raise ValueError(f"cannot write the {name} cache in {directory}: {error.strerror or error}; set "
+                             f"{CACHE_ENV} to a writable folder") from None
+    return [scenes[index] for index in range(count)]
 
 
 def log_scene(rec, scene: SyntheticScene, entity: str = "world/synthetic") -> None:
