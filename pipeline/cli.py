@@ -251,7 +251,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     if rrd is not None and rrd.resolve() == out.resolve():
         raise CliError(f"--out and --rrd are both {args.out}; give them different names")
     if cloud.unit_scale != 1.0:
-        print(f"note: {args.cloud} spans {cloud.extent:.0f} units, "
+        print(f"note: {args.cloud} spans {cloud.extent:.3g} units, "
               "so it is read as millimetres and converted to metres", file=sys.stderr)
     model, _ = _load_model(args.model)
     points = cloud.points

@@ -56,7 +56,7 @@ def load_cloud(path: Path) -> LoadedCloud:
         import open3d as o3d
 
         if suffix == ".ply":
-            _check_binary_ply_length(path)
+            _check_ply_length(path)
         cloud = o3d.io.read_point_cloud(str(path))
         points = np.asarray(cloud.points, np.float64)
         if len(points) == 0:
@@ -83,19 +83,18 @@ def load_cloud(path: Path) -> LoadedCloud:
 
 
 
-def _check_binary_ply_length(path: Path) -> None:
-    """ValueError if a binary PLY is shorter than its header's vertices need. Open3D reads a cut-short
-    file without an error, filling the missing points with zeros."""
+def _check_ply_length(path: Path) -> None:
+    """ValueError if a PLY is shorter than its header's vertices need: bytes for a binary file, lines
+    for an ASCII one. Open3D reads a cut-short file with only a warning, filling the missing points
+    with zeros."""
     with open(path, "rb") as file:
         head = file.read(65536)
     end = head.find(b"end_header")
     if not head.startswith(b"ply") or end < 0:
         return
-    header_bytes = head.index(b"\n", end) + 1
+    header_bytes = head.index(b"\n", end) + 1 if b"\n" in head[end:] else len(head)
     lines = head[:end].decode("ascii", "replace").split("\n")
-    if not any(line.split()[:2] in (["format", "binary_little_endian"], ["format", "binary_big_endian"])
-               for line in lines):
-        return
+    formats = [line.split()[1] for line in lines if line.split()[:1] == ["format"] and len(line.split()) > 1]
     vertices, record, in_vertex = None, 0, False
     for words in (line.split() for line in lines):
         if words[:1] == ["element"] and len(words) == 3:
@@ -108,7 +107,15 @@ def _check_binary_ply_length(path: Path) -> None:
             if len(words) != 3 or words[1] not in _PLY_SIZES:
                 return
             record += _PLY_SIZES[words[1]]
-    if vertices is None:
+    if vertices is None or not formats:
+        return
+    if formats[0] == "ascii":
+        with open(path, "rb") as file:
+            file.seek(header_bytes)
+            have = sum(1 for line in file if line.strip())
+        if have < vertices:
+            raise ValueError(f"{path} is cut short: its header lists {vertices} points but the file has "
+                             f"{have} lines of data")
         return
     needed = header_bytes + vertices * record
     if path.stat().st_size < needed:

@@ -73,7 +73,7 @@ def test_detect_writes_json_in_the_input_frame(tmp_path, weights, scene_ply):
     ("nan", "NaN or infinite"), ("empty", "empty"), ("missing", "does not exist"), ("format", "unsupported"),
     ("corrupt-model", "not a mushroom-pose weights file"), ("missing-model", "does not exist"),
     ("folder", "is a folder"), ("line", "on a line"), ("far", "beyond the voxel grid"),
-    ("diverged-model", "not finite"),
+    ("diverged-model", "not finite"), ("ascii-short", "cut short"),
 ])
 def test_detect_bad_input(tmp_path, weights, case, fragment):
     cloud = write_ply(tmp_path / "c.ply", np.random.default_rng(0).uniform(-0.2, 0.2, (500, 3)) * [1, 1, 0.05])
@@ -101,6 +101,10 @@ def test_detect_bad_input(tmp_path, weights, case, fragment):
         cloud.mkdir()
     elif case == "line":
         cloud = write_ply(tmp_path / "line.ply", np.outer(np.linspace(0, 0.3, 500), [1.0, 0.5, 0.0]))
+    elif case == "ascii-short":
+        cloud = tmp_path / "short.ply"
+        cloud.write_text("ply\nformat ascii 1.0\nelement vertex 10\nproperty float x\nproperty float y\n"
+                         "property float z\nend_header\n0 0 0\n0.1 0 0\n")
     elif case == "far":
         points = np.random.default_rng(0).uniform(-0.2, 0.2, (500, 3)) * [1, 1, 0.05] + [0.0, 0.0, 500.0]
         np.savez(tmp_path / "far.npz", points=points)
