@@ -152,6 +152,7 @@ class McapRecorder:
             raise FileExistsError(f"{self.partial_path} exists: an earlier recording was interrupted; "
                                   f"McapSource can replay it, move or delete it first")
         self.frames = 0
+        self._messages = 0  # whole frames, documents and clouds: with none yet, an error discards the file
         self._context = foxglove.Context()
         options = MCAPWriteOptions(compression=_COMPRESSION[compression], chunk_size=chunk_size)
         try:
@@ -166,7 +167,7 @@ class McapRecorder:
         return self
 
     def __exit__(self, kind: Any, *exc: Any) -> None:
-        self.close(discard=kind is not None and not self._channels)
+        self.close(discard=kind is not None and not self._messages)
 
     def _channel(self, topic: str, kind: type, **kwargs: Any) -> Any:
         channel = self._channels.get(topic)
@@ -219,11 +220,13 @@ class McapRecorder:
             json.dumps(meta).encode(), log_time=t)
         self._last_timestamp[sensor] = t
         self.frames += 1
+        self._messages += 1
 
     def write_json(self, topic: str, obj: Any, log_time_ns: int, *, schema: dict | None = None) -> None:
         """Log ``obj`` (numpy values allowed) on a JSON channel; ``schema`` is a JSON schema of an object."""
         channel = self._channel(topic, foxglove.Channel, schema=schema or {"type": "object"})
         channel.log(json.dumps(obj, default=_jsonable).encode(), log_time=int(log_time_ns))
+        self._messages += 1
 
     def write_point_cloud(self, topic: str, points: np.ndarray, log_time_ns: int, frame_id: str = "world") -> None:
         """Log points (N, 3) in metres as a foxglove.PointCloud with float32 fields x, y, z."""
@@ -236,12 +239,13 @@ class McapRecorder:
             pose=Pose(position=Vector3(), orientation=Quaternion(w=1.0)), point_stride=12,
             fields=[PackedElementField(name=name, offset=4 * i, type=f32) for i, name in enumerate("xyz")],
             data=np.ascontiguousarray(points, "<f4").tobytes()), log_time=int(log_time_ns))
+        self._messages += 1
 
     def close(self, discard: bool = False) -> None:
         """Finalise the MCAP and move it to its final name; safe to call twice. If finalising fails
         (disk full), the ``.partial`` file stays for McapSource to recover and the error propagates.
-        ``discard`` deletes it instead: ``with`` does so when an error ends a recording before anything
-        was written, so that an earlier file of that name is kept, not replaced by an empty one."""
+        ``discard`` deletes it instead: ``with`` does so when an error ends a recording before its first
+        whole message, so that an earlier file of that name is kept, not replaced by an empty one."""
         if self._closed:
             return
         self._closed = True

@@ -129,7 +129,8 @@ def _check_finite(values: np.ndarray, frames: list[DepthFrame], what: str) -> No
 
 
 def bed_frame(points: np.ndarray, poses: np.ndarray, distance: float = 0.008) -> np.ndarray:
-    """T_world_bed of a world-frame cloud, with z towards the cameras (they look down on the bed)."""
+    """T_world_bed of a world-frame cloud, with z towards the cameras (they look down on the bed from
+    closer than ``fusion.bed.CAMERA_RANGE``)."""
     eye = np.asarray(poses)[:, :3, 3].mean(0)
     T = estimate_bed_frame(np.asarray(points, np.float64) - eye, distance)
     T[:3, 3] += eye

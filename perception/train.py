@@ -133,15 +133,24 @@ def _load_checkpoint(path: Path, device: str) -> dict:
     return state
 
 
+SAMPLE_PATIENCE_S = 600.0
+"""A scene takes well under a second; a generator silent this long is stuck."""
+
+
 def _next_sample(samples: mp.Queue, producer: mp.Process, iteration: int) -> dict:
-    """The producer's next sample; an error, not a wait without end, if the producer has died."""
+    """The producer's next sample; an error, not a wait without end, if the producer died or hangs."""
+    waited = 0.0
     while True:
         try:
             return samples.get(timeout=5)
         except queues.Empty:
+            waited += 5
             if not producer.is_alive():
                 raise TrainingError(f"the scene generator stopped (exit code {producer.exitcode}) before "
                                     f"iteration {iteration + 1}; its error is printed above") from None
+            if waited >= SAMPLE_PATIENCE_S:
+                raise TrainingError(f"no scene for iteration {iteration + 1} in {waited:.0f} s: the scene "
+                                    "generator is stuck") from None
 
 
 def _producer(config: TrainConfig, network: NetworkConfig, start: int, stop: int, queue: mp.Queue) -> None:
@@ -295,16 +304,23 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
                dynamic_ncols=True)
     session_start = time.perf_counter()
 
-    saved_at = start
+    saved_at = start if resume else None
 
     def save(iteration: int) -> None:
         nonlocal saved_at
+        if not all(torch.isfinite(p).all() for p in model.parameters()):
+            raise TrainingError(f"the weights are no longer finite at iteration {iteration}; {diverged()}")
         _atomic_save({"model": model.state_dict(), "optimizer": optimizer.state_dict(),
                       "scheduler": scheduler.state_dict(), "torch_rng": torch.get_rng_state(),
                       "iteration": iteration, "elapsed_s": elapsed_before + time.perf_counter() - session_start,
                       "train_config": config.to_dict(), "network": network_config.to_dict(), "init": init},
                      checkpoint_path)
         saved_at = iteration
+
+    def diverged() -> str:
+        kept = f"the checkpoint in {run_dir} is from iteration {saved_at}" if saved_at is not None else \
+            "no checkpoint was kept"
+        return f"start a new run with a smaller learning rate or loss weights ({kept})"
 
     end = config.iterations if stop_at is None else min(stop_at, config.iterations)
     deadline = None if max_minutes is None else session_start + 60 * max_minutes
@@ -320,9 +336,7 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
             terms = loss_terms(output, tensors["existence"], tensors["residual"], tensors["orientation"], config,
                                tensors["cap_weight"])
             if not torch.isfinite(terms["total"]):
-                kept = f"the checkpoint in {run_dir} is from iteration {saved_at}" if saved_at else "no checkpoint kept"
-                raise TrainingError(f"the loss is no longer finite at iteration {iteration + 1} (learning rate or "
-                                    f"loss weights too large?); {kept}")
+                raise TrainingError(f"the loss is no longer finite at iteration {iteration + 1}; {diverged()}")
             optimizer.zero_grad(set_to_none=True)
             terms["total"].backward()
             optimizer.step()

@@ -33,10 +33,15 @@ def _writable_dir(path: str) -> Path:
 def _writable_file(path: str | None, inputs: tuple[str | None, ...] = ()) -> Path | None:
     """An output file's path, its folder created; refused when it is a folder, a device or other
     special file, or one of ``inputs`` (writing it would destroy the input). A symlink resolves to
-    its target, which is then replaced."""
+    its target, which is then replaced; a dangling one is refused."""
     if path is None:
         return None
-    file = Path(path).resolve() if Path(path).is_symlink() else Path(path)
+    file = Path(path)
+    if file.is_symlink():
+        try:
+            file = file.resolve(strict=True)
+        except (OSError, RuntimeError):
+            raise CliError(f"{path} is a link to nothing (or to itself); remove it or pick another name") from None
     if file.is_dir():
         raise CliError(f"{file} is a folder, expected a file name")
     if file.exists() and not file.is_file():
@@ -60,6 +65,10 @@ def _replace_file(path: Path, text: str) -> None:
         raise CliError(f"cannot write {path}: {error.strerror or error}") from None
 
 
+MAX_COUNT = 2**31 - 1
+"""Counts (scenes, views, iterations, threads) beyond this are typing slips, and overflow numpy's seeds."""
+
+
 def _positive(kind):
     def parse(text: str):
         try:
@@ -67,12 +76,21 @@ def _positive(kind):
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected {'a whole number' if kind is int else 'a number'}, "
                                              f"got {text!r}") from None
-        if not math.isfinite(value):
+        if kind is float and not math.isfinite(value):
             raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
+        if kind is int and value > MAX_COUNT:
+            raise argparse.ArgumentTypeError(f"at most {MAX_COUNT}, got {text}")
         if value <= 0:
             raise argparse.ArgumentTypeError(f"must be positive, got {text}")
         return value
     return parse
+
+
+def _learning_rate(text: str) -> float:
+    value = _positive(float)(text)
+    if value > 1.0:
+        raise argparse.ArgumentTypeError(f"at most 1 (Adam's steps are about this size in every weight), got {text}")
+    return value
 
 
 def _seed(text: str) -> int:
@@ -246,8 +264,8 @@ def cmd_detect(args: argparse.Namespace) -> int:
         cloud = load_cloud(Path(args.cloud))
     except ValueError as error:
         raise CliError(str(error)) from None
-    out = _writable_file(args.out, inputs=(args.cloud,))
-    rrd = _writable_file(args.rrd, inputs=(args.cloud,))
+    out = _writable_file(args.out, inputs=(args.cloud, args.model))
+    rrd = _writable_file(args.rrd, inputs=(args.cloud, args.model))
     if rrd is not None and rrd.resolve() == out.resolve():
         raise CliError(f"--out and --rrd are both {args.out}; give them different names")
     if cloud.unit_scale != 1.0:
@@ -320,7 +338,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from perception.detect import evaluate_on_scenes
     from perception.synthetic.dataset import load_preset
 
-    json_path = _writable_file(args.json)
+    json_path = _writable_file(args.json, inputs=(args.model,))
     model, meta = _load_model(args.model)
     report = {}
     for name in args.set:
@@ -382,11 +400,12 @@ def cmd_record(args: argparse.Namespace) -> int:
         with source:
             summary = record(source, out, args.duration, progress=not args.quiet, overwrite=args.overwrite,
                              on_frame=lambda frames, _: written.__setitem__(0, frames))
-    except SourceError as error:
+    except (SourceError, ValueError) as error:
         kept = (f"; the {written[0]} frames recorded so far are in {out}" if written[0]
                 else "; nothing was recorded" + (f", {out} is as it was" if out.exists() else ""))
-        raise CliError(f"{args.camera} camera: {error}{kept}") from None
-    except (ImportError, FileExistsError, ValueError) as error:
+        camera = f"{args.camera} camera: " if isinstance(error, SourceError) else ""
+        raise CliError(f"{camera}{error}{kept}") from None
+    except (ImportError, FileExistsError) as error:
         raise CliError(str(error)) from None
     print(f"recorded {summary.frames} frames in {summary.seconds:.1f} s ({summary.stopped_by}) -> {out} "
           f"({summary.bytes / 1e6:.1f} MB)")
@@ -446,7 +465,7 @@ def build_parser() -> argparse.ArgumentParser:
     train = sub.add_parser("train", help="train the network on fresh synthetic beds (resumable)")
     train.add_argument("--out", required=True, help="run folder: checkpoint.pt, history.csv, model.pt, .rrd")
     train.add_argument("--iterations", type=_positive(int), default=20000, help="default 20000 (the paper's)")
-    train.add_argument("--lr", type=_positive(float), default=1e-3, help="Adam learning rate (default 1e-3)")
+    train.add_argument("--lr", type=_learning_rate, default=1e-3, help="Adam learning rate, at most 1 (default 1e-3)")
     train.add_argument("--network", default="slim-no", help="network preset: slim-no (default, the shipped "
                        "model's: slim U-Net fed normals and each centroid's place in its voxel), slim-n (normals "
                        "only), slim (occupancy only, as the paper), wide-no (slim-no with wider coarse levels) "

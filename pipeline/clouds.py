@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -84,18 +85,18 @@ def load_cloud(path: Path) -> LoadedCloud:
 
 
 def _check_ply_length(path: Path) -> None:
-    """ValueError if a PLY is shorter than its header's vertices need: bytes for a binary file, lines
-    for an ASCII one. Open3D reads a cut-short file with only a warning, filling the missing points
-    with zeros."""
+    """ValueError if a PLY is shorter than its header's vertices need: bytes for a binary file, values
+    for an ASCII one (a lower bound when other elements come first). Open3D reads a cut-short file
+    with only a warning, filling the missing points with zeros."""
     with open(path, "rb") as file:
         head = file.read(65536)
-    end = head.find(b"end_header")
-    if not head.startswith(b"ply") or end < 0:
+    end = re.search(rb"(?m)^end_header[ \t]*\r?$", head)
+    if not head.startswith(b"ply") or end is None:
         return
-    header_bytes = head.index(b"\n", end) + 1 if b"\n" in head[end:] else len(head)
-    lines = head[:end].decode("ascii", "replace").split("\n")
+    header_bytes = end.end() + 1
+    lines = head[:end.start()].decode("ascii", "replace").split("\n")
     formats = [line.split()[1] for line in lines if line.split()[:1] == ["format"] and len(line.split()) > 1]
-    vertices, record, in_vertex = None, 0, False
+    vertices, record, properties, in_vertex = None, 0, 0, False
     for words in (line.split() for line in lines):
         if words[:1] == ["element"] and len(words) == 3:
             if in_vertex:
@@ -107,15 +108,16 @@ def _check_ply_length(path: Path) -> None:
             if len(words) != 3 or words[1] not in _PLY_SIZES:
                 return
             record += _PLY_SIZES[words[1]]
+            properties += 1
     if vertices is None or not formats:
         return
     if formats[0] == "ascii":
         with open(path, "rb") as file:
             file.seek(header_bytes)
-            have = sum(1 for line in file if line.strip())
-        if have < vertices:
-            raise ValueError(f"{path} is cut short: its header lists {vertices} points but the file has "
-                             f"{have} lines of data")
+            values = len(file.read().split())
+        if values < vertices * properties:
+            raise ValueError(f"{path} is cut short: its header lists {vertices} points of {properties} values "
+                             f"but the file holds {values} values")
         return
     needed = header_bytes + vertices * record
     if path.stat().st_size < needed:

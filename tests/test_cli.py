@@ -98,6 +98,8 @@ def test_a_loss_weight_that_is_not_positive_gives_one_line_and_exit_2(tmp_path):
 @pytest.mark.parametrize("args, message", [
     (["synth", "--mushrooms", "5", "100000", "--out", "OUT"], "at most 300"),
     (["train", "--out", "OUT", "--lr", "nan"], "must be a finite number"),
+    (["train", "--out", "OUT", "--lr", "2"], "at most 1"),
+    (["synth", "--out", "OUT", "--scenes", "9" * 400], "at most 2147483647"),
     (["train", "--out", "OUT", "--scale-jitter", "1", "inf"], "must be a finite number"),
     (["train", "--out", "OUT", "--seed", "99999999999999999999999"], "below 2^63"),
     (["train", "--out", "OUT", "--threads", "100000"], "4 per core"),

@@ -146,6 +146,42 @@ def test_an_output_that_is_the_input_is_refused(tmp_path, weights, scene_ply, na
     assert cloud.read_bytes() == ply.read_bytes()
 
 
+def test_the_model_file_is_not_an_output(tmp_path, weights, scene_ply):
+    ply, _ = scene_ply
+    model = tmp_path / "model.pt"
+    model.write_bytes(weights.read_bytes())
+    one_line_error(run("detect", ply, "--model", model, "--out", model), "also an input")
+    one_line_error(run("eval", "--model", model, "--json", model, "--scenes", "1"), "also an input")
+    assert model.read_bytes() == weights.read_bytes()
+
+
+def test_outputs_through_links(tmp_path, weights, scene_ply):
+    ply, _ = scene_ply
+    target = tmp_path / "real.json"
+    target.write_text("old")
+    (tmp_path / "link.json").symlink_to(target)
+    assert run("detect", ply, "--model", weights, "--out", tmp_path / "link.json").returncode == 0
+    assert (tmp_path / "link.json").is_symlink() and json.loads(target.read_text())["frame"] == "input"
+    (tmp_path / "dangling.json").symlink_to(tmp_path / "far" / "away.json")
+    one_line_error(run("detect", ply, "--model", weights, "--out", tmp_path / "dangling.json"), "link to nothing")
+    assert not (tmp_path / "far").exists()
+
+
+@pytest.mark.parametrize("layout", ["one line", "two per line", "comment"])
+def test_ply_length_check_reads_the_header_as_the_format_says(tmp_path, layout):
+    points = np.random.default_rng(1).uniform(-0.2, 0.2, (50, 3))
+    header = "ply\nformat ascii 1.0\n" + ("comment end_header is not the end\n" if layout == "comment" else "")
+    header += "element vertex 50\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    per_line = {"one line": 50, "two per line": 2, "comment": 1}[layout]
+    rows = [" ".join(f"{v:.6f}" for v in points[i:i + per_line].ravel()) for i in range(0, 50, per_line)]
+    path = tmp_path / "p.ply"
+    path.write_text(header + "\n".join(rows) + "\n")
+    np.testing.assert_allclose(load_cloud(path).points, points, atol=1e-6)
+    path.write_text(header + "\n".join(rows[: len(rows) // 2 or 1])[: 200 if per_line == 50 else None] + "\n")
+    with pytest.raises(ValueError, match="cut short"):
+        load_cloud(path)
+
+
 def test_a_failed_write_leaves_no_temporary_file(tmp_path):
     from pipeline.cli import CliError, _replace_file
 

@@ -76,6 +76,24 @@ def test_a_camera_that_gives_nothing_says_so_and_keeps_the_old_file(tmp_path, mo
     assert out.read_bytes() == b"an earlier session"
 
 
+def test_a_recording_that_fails_inside_its_first_frame_keeps_the_old_file(tmp_path, monkeypatch):
+    """The depth image is written before the pose: a pose that cannot be written fails the frame half
+    way, and the earlier session must survive that."""
+    import dataclasses
+
+    import pipeline.sources
+
+    frame = next(iter(virtual_bed_source(VirtualBedRig(seed=1, views=1))[0]))
+    broken = dataclasses.replace(frame, T_world_camera=np.full((4, 4), np.nan))
+    monkeypatch.setattr(pipeline.sources, "make_source", lambda *a, **k: UnpluggedAfter([broken]))
+    out = tmp_path / "old.mcap"
+    out.write_bytes(b"an earlier session")
+    result = run("record", "--camera", "realsense", "--out", out, "--overwrite", "--quiet")
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert "nothing was recorded" in result.stderr, result.stderr
+    assert out.read_bytes() == b"an earlier session"
+
+
 def test_depth_and_colour_of_different_sizes_are_refused():
     from capture.frames import CameraIntrinsics, DepthFrame
 
