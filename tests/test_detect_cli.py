@@ -165,6 +165,8 @@ def test_outputs_through_links(tmp_path, weights, scene_ply):
     (tmp_path / "dangling.json").symlink_to(tmp_path / "far" / "away.json")
     one_line_error(run("detect", ply, "--model", weights, "--out", tmp_path / "dangling.json"), "link to nothing")
     assert not (tmp_path / "far").exists()
+    (tmp_path / "loop.json").symlink_to(tmp_path / "loop.json")
+    one_line_error(run("detect", ply, "--model", weights, "--out", tmp_path / "loop.json"), "to itself")
 
 
 @pytest.mark.parametrize("layout", ["one line", "two per line", "comment"])

@@ -203,6 +203,19 @@ def test_a_dead_scene_generator_stops_the_run(tmp_path, tiny_network, monkeypatc
         train(config, tmp_path, progress=False, rerun=False)
 
 
+def test_a_stuck_scene_generator_stops_the_run(tmp_path, tiny_network, monkeypatch):
+    import threading
+
+    import perception.train as training
+
+    never = threading.Event()
+    monkeypatch.setattr(training, "augmented_sample", lambda config, iteration: never.wait())
+    monkeypatch.setattr(training, "SAMPLE_PATIENCE_S", 5.0)
+    config = TrainConfig(iterations=2, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
+    with pytest.raises(TrainingError, match="is stuck"):
+        train(config, tmp_path, progress=False, rerun=False)
+
+
 def test_a_device_torch_cannot_use_is_refused(tmp_path, tiny_network):
     config = TrainConfig(iterations=2, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
     with pytest.raises(ValueError, match="unknown device"):
