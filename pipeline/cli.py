@@ -234,11 +234,16 @@ def torch_threads(threads: int | None) -> None:
         torch.set_num_threads(threads)
 
 
-def _load_model(path: str | None):
+def _model_path(path: str | None) -> Path:
     from perception.detect import DEFAULT_WEIGHTS
+
+    return Path(path) if path else DEFAULT_WEIGHTS
+
+
+def _load_model(path: str | None):
     from perception.train import load_weights
 
-    weights = Path(path) if path else DEFAULT_WEIGHTS
+    weights = _model_path(path)
     if not weights.exists():
         if path:
             raise CliError(f"model file {weights} does not exist")
@@ -264,8 +269,8 @@ def cmd_detect(args: argparse.Namespace) -> int:
         cloud = load_cloud(Path(args.cloud))
     except ValueError as error:
         raise CliError(str(error)) from None
-    out = _writable_file(args.out, inputs=(args.cloud, args.model))
-    rrd = _writable_file(args.rrd, inputs=(args.cloud, args.model))
+    out = _writable_file(args.out, inputs=(args.cloud, _model_path(args.model)))
+    rrd = _writable_file(args.rrd, inputs=(args.cloud, _model_path(args.model)))
     if rrd is not None and rrd.resolve() == out.resolve():
         raise CliError(f"--out and --rrd are both {args.out}; give them different names")
     if cloud.unit_scale != 1.0:
@@ -338,7 +343,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from perception.detect import evaluate_on_scenes
     from perception.synthetic.dataset import load_preset
 
-    json_path = _writable_file(args.json, inputs=(args.model,))
+    json_path = _writable_file(args.json, inputs=(_model_path(args.model),))
     model, meta = _load_model(args.model)
     report = {}
     for name in args.set:

@@ -83,7 +83,6 @@ def load_cloud(path: Path) -> LoadedCloud:
     return LoadedCloud(points, in_bed, scale, extent)
 
 
-
 def _check_ply_length(path: Path) -> None:
     """ValueError if a PLY is shorter than its header's vertices need: bytes for a binary file, values
     for an ASCII one (a lower bound when other elements come first). Open3D reads a cut-short file

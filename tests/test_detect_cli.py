@@ -153,6 +153,11 @@ def test_the_model_file_is_not_an_output(tmp_path, weights, scene_ply):
     one_line_error(run("detect", ply, "--model", model, "--out", model), "also an input")
     one_line_error(run("eval", "--model", model, "--json", model, "--scenes", "1"), "also an input")
     assert model.read_bytes() == weights.read_bytes()
+    from perception.detect import DEFAULT_WEIGHTS
+
+    shipped = DEFAULT_WEIGHTS.read_bytes()
+    one_line_error(run("eval", "--json", DEFAULT_WEIGHTS, "--scenes", "1"), "also an input")
+    assert DEFAULT_WEIGHTS.read_bytes() == shipped
 
 
 def test_outputs_through_links(tmp_path, weights, scene_ply):

@@ -92,7 +92,6 @@ def load_preset(name: str, visibility: str = "hpr", progress: bool = True,
     preset = PRESETS[name]
     directory = preset_dir(name, visibility)
     seeds = scene_seeds(preset.seed, preset.scenes)
-    scenes = []
     config = SceneConfig(**{**preset.config.__dict__, "visibility": visibility})
     count = preset.scenes if limit is None else min(limit, preset.scenes)
     scenes: dict[int, SyntheticScene] = {}
