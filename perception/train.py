@@ -101,6 +101,11 @@ def augmented_sample(config: TrainConfig, iteration: int) -> dict[str, np.ndarra
             "instance": np.where(targets.existence > 0, scene.instance[keep], -1).astype(np.int64)}
 
 
+def _all_finite(model: torch.nn.Module) -> bool:
+    """Whether every weight and running statistic is a finite number (a diverged run's are not)."""
+    return all(torch.isfinite(value).all() for value in model.state_dict().values() if value.is_floating_point())
+
+
 class TrainingError(RuntimeError):
     """A run that cannot go on: its scene generator died, or its loss stopped being finite."""
 
@@ -308,7 +313,7 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
 
     def save(iteration: int) -> None:
         nonlocal saved_at
-        if not all(torch.isfinite(p).all() for p in model.parameters()):
+        if not _all_finite(model):
             raise TrainingError(f"the weights are no longer finite at iteration {iteration}; {diverged()}")
         _atomic_save({"model": model.state_dict(), "optimizer": optimizer.state_dict(),
                       "scheduler": scheduler.state_dict(), "torch_rng": torch.get_rng_state(),
@@ -417,7 +422,7 @@ def load_weights(path: Path, device: str = "cpu") -> tuple[MushroomNet, dict]:
         raise
     except Exception as error:
         raise ValueError(f"{path} is not a mushroom-pose weights file ({type(error).__name__})") from None
-    if not all(torch.isfinite(value).all() for value in model.state_dict().values() if value.is_floating_point()):
+    if not _all_finite(model):
         raise ValueError(f"{path} holds weights that are not finite numbers (a training run that diverged)")
     model.eval()
     return model, {k: v for k, v in state.items() if k not in ("model", "optimizer", "scheduler", "torch_rng")}

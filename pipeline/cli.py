@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -86,38 +87,19 @@ def _positive(kind):
     return parse
 
 
-def _learning_rate(text: str) -> float:
-    value = _positive(float)(text)
-    if value > 1.0:
-        raise argparse.ArgumentTypeError(f"at most 1 (Adam's steps are about this size in every weight), got {text}")
-    return value
-
-
-def _seed(text: str) -> int:
-    value = _non_negative_int(text)
-    if value >= 2**63:
-        raise argparse.ArgumentTypeError(f"must be below 2^63, got {text}")
-    return value
-
-
-def _threads(text: str) -> int:
-    import os
-
-    value, cores = _positive(int)(text), os.cpu_count() or 1
-    if value > 4 * cores:
-        raise argparse.ArgumentTypeError(f"at most {4 * cores} (4 per core; this machine has {cores}), got {text}")
-    return value
+def _at_most(parse, limit, reason: str = ""):
+    """``parse``, refusing values above ``limit``."""
+    def bounded(text: str):
+        value = parse(text)
+        if value > limit:
+            raise argparse.ArgumentTypeError(f"at most {limit}{reason}, got {text}")
+        return value
+    return bounded
 
 
 MAX_MUSHROOMS = 300
 """More than a 0.5 m bed holds (about 260 caps when packed): asking for more only slows the placer."""
-
-
-def _mushroom_count(text: str) -> int:
-    value = _non_negative_int(text)
-    if value > MAX_MUSHROOMS:
-        raise argparse.ArgumentTypeError(f"at most {MAX_MUSHROOMS} (a 0.5 m bed is full at about 260), got {text}")
-    return value
+CORES = os.cpu_count() or 1
 
 
 def _non_negative_int(text: str) -> int:
@@ -128,6 +110,12 @@ def _non_negative_int(text: str) -> int:
     if value < 0:
         raise argparse.ArgumentTypeError(f"must not be negative, got {text}")
     return value
+
+
+_seed = _at_most(_non_negative_int, 2**63 - 1, " (seeds are below 2^63)")
+_threads = _at_most(_positive(int), 4 * CORES, f" (4 per core; this machine has {CORES})")
+_learning_rate = _at_most(_positive(float), 1.0, " (Adam's steps are about this size in every weight)")
+_mushroom_count = _at_most(_non_negative_int, MAX_MUSHROOMS, " (a 0.5 m bed is full at about 260)")
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
