@@ -5,11 +5,11 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
-
-import numpy as np
 
 
 class CliError(Exception):
@@ -31,13 +31,16 @@ def _writable_dir(path: str) -> Path:
     return directory
 
 
-def _writable_file(path: str | None, inputs: tuple[str | None, ...] = ()) -> Path | None:
+def _writable_file(path: str | None, inputs: tuple[str | None, ...] = (), suffix: str | None = None) -> Path | None:
     """An output file's path, its folder created; refused when it is a folder, a device or other
-    special file, or one of ``inputs`` (writing it would destroy the input). A symlink resolves to
-    its target, which is then replaced; a dangling one is refused."""
+    special file, one of ``inputs`` (writing it would destroy the input), or, for a fixed format,
+    named without its ``suffix``. A symlink resolves to its target, which is then replaced; a
+    dangling one is refused."""
     if path is None:
         return None
     file = Path(path)
+    if suffix is not None and file.suffix.lower() != suffix:
+        raise CliError(f"{path}: this file is written as {suffix[1:].upper()}; name it with {suffix}")
     if file.is_symlink():
         try:
             file = file.resolve(strict=True)
@@ -119,6 +122,8 @@ _mushroom_count = _at_most(_non_negative_int, MAX_MUSHROOMS, " (a 0.5 m bed is f
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from perception.synthetic.dataset import (PRESETS, generate_many, log_scene, scene_seeds, write_scene)
     from perception.synthetic.scene import SceneConfig
     from pipeline.rerun_sink import rerun_stream, set_frame
@@ -126,9 +131,9 @@ def cmd_synth(args: argparse.Namespace) -> int:
     low, high = args.mushrooms
     if high < low:
         raise CliError(f"--mushrooms range is inverted: {low} > {high}")
-    out = _writable_dir(args.out)
+    preview = _writable_file(args.preview, suffix=".png")
     rrd = _writable_file(args.rrd)
-    preview = _writable_file(args.preview)
+    out = _writable_dir(args.out)
     if args.preset:
         preset = PRESETS[args.preset]
         seeds = scene_seeds(preset.seed, preset.scenes)
@@ -244,6 +249,8 @@ def _load_model(path: str | None):
 
 def cmd_detect(args: argparse.Namespace) -> int:
     import json
+
+    import numpy as np
 
     from capture.frames import transform_points
     from fusion.bed import estimate_bed_frame
@@ -406,6 +413,8 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from capture.mcap_io import McapSource
     from capture.source import SourceError
     from fusion.turntable import estimate_rig
@@ -552,16 +561,37 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    interrupted: list[int] = []
+
+    def on_interrupt(signum: int, frame) -> None:
+        interrupted.append(signum)
+        raise KeyboardInterrupt
+
+    # Installed before numpy and each command's libraries load: C extensions turn a Ctrl-C during
+    # their loading into other errors, such as ImportError("initialization failed"). An ignored
+    # SIGINT (a background job) stays ignored.
+    previous = None
+    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
+        previous = signal.signal(signal.SIGINT, on_interrupt)
+    command = "mushroom-pose"
     try:
+        args = build_parser().parse_args(argv)
+        command = f"mushroom-pose {args.command}"
         return args.run(args)
     except CliError as error:
-        print(f"mushroom-pose {args.command}: error: {error}", file=sys.stderr)
-        return 2
+        if not interrupted:
+            print(f"{command}: error: {error}", file=sys.stderr)
+            return 2
     except KeyboardInterrupt:
-        print(f"mushroom-pose {args.command}: interrupted", file=sys.stderr)
-        return 130
+        pass
+    except Exception:
+        if not interrupted:
+            raise
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+    print(f"{command}: interrupted", file=sys.stderr)
+    return 130
 
 
 if __name__ == "__main__":

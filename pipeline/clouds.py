@@ -68,10 +68,7 @@ def load_cloud(path: Path) -> LoadedCloud:
                          f"use one of {', '.join(CLOUD_SUFFIXES)}")
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"{path}: expected N x 3 points, got shape {points.shape}")
-    finite = np.isfinite(points).all(1)
-    if not finite.all():
-        raise ValueError(f"{path}: {np.count_nonzero(~finite)} of {len(points)} points are NaN or infinite; "
-                         "remove them (invalid depth) and try again")
+    _refuse_nonfinite(path, points)
     if len(points) == 0:
         raise ValueError(f"{path}: the cloud is empty")
     scale = 1.0
@@ -95,11 +92,12 @@ def _check_ply_length(path: Path) -> None:
     header_bytes = end.end() + 1
     lines = head[:end.start()].decode("ascii", "replace").split("\n")
     formats = [line.split()[1] for line in lines if line.split()[:1] == ["format"] and len(line.split()) > 1]
-    vertices, record, properties, in_vertex = None, 0, 0, False
+    vertices, record, properties, in_vertex, elements = None, 0, 0, False, 0
     for words in (line.split() for line in lines):
         if words[:1] == ["element"] and len(words) == 3:
             if in_vertex:
                 break
+            elements += 1
             in_vertex = words[1] == "vertex"
             if in_vertex and words[2].isdigit():
                 vertices = int(words[2])
@@ -113,12 +111,41 @@ def _check_ply_length(path: Path) -> None:
     if formats[0] == "ascii":
         with open(path, "rb") as file:
             file.seek(header_bytes)
-            values = len(file.read().split())
-        if values < vertices * properties:
+            values = file.read().split()
+        if len(values) < vertices * properties:
             raise ValueError(f"{path} is cut short: its header lists {vertices} points of {properties} values "
-                             f"but the file holds {values} values")
+                             f"but the file holds {len(values)} values")
+        if elements == 1:
+            _check_ascii_vertices(path, values[:vertices * properties], properties)
         return
     needed = header_bytes + vertices * record
     if path.stat().st_size < needed:
         raise ValueError(f"{path} is cut short: its header lists {vertices} points ({needed} bytes) but the file "
                          f"has {path.stat().st_size} bytes")
+
+
+def _check_ascii_vertices(path: Path, values: list[bytes], properties: int) -> None:
+    """ValueError naming the points Open3D would misread: it stops at a value it cannot parse ("inf",
+    a word) and fills the rest of the cloud with zeros, so NaN or infinite points are counted here."""
+    try:
+        table = np.array(values, dtype=np.float64).reshape(-1, properties)
+    except ValueError:
+        word = next(v for v in values if not _is_number(v))
+        raise ValueError(f"{path}: {word.decode('ascii', 'replace')!r} is not a number; "
+                         f"the file is not a readable ASCII PLY") from None
+    _refuse_nonfinite(path, table)
+
+
+def _refuse_nonfinite(path: Path, rows: np.ndarray) -> None:
+    bad = np.count_nonzero(~np.isfinite(rows).all(1))
+    if bad:
+        raise ValueError(f"{path}: {bad} of {len(rows)} points are NaN or infinite; "
+                         "remove them (invalid depth) and try again")
+
+
+def _is_number(value: bytes) -> bool:
+    try:
+        float(value)
+        return True
+    except ValueError:
+        return False

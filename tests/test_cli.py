@@ -106,6 +106,7 @@ def test_a_loss_weight_that_is_not_positive_gives_one_line_and_exit_2(tmp_path):
     (["train", "--out", "OUT", "--resume"], "no checkpoint to resume"),
     (["train", "--out", "OUT", "--device", "gpu", "--validation-scenes", "0"], "unknown device"),
     (["record", "--camera", "virtual", "--out", "OUT/r.mcap", "--duration", "inf"], "must be a finite number"),
+    (["synth", "--out", "OUT", "--preview", "OUT.txt"], "name it with .png"),
 ])
 def test_bad_numbers_and_runs_give_one_line_and_exit_2(tmp_path, capsys, args, message):
     from pipeline.cli import main

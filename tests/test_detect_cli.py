@@ -189,6 +189,22 @@ def test_ply_length_check_reads_the_header_as_the_format_says(tmp_path, layout):
         load_cloud(path)
 
 
+@pytest.mark.parametrize("bad_rows, message", [
+    ({3: "nan 0.1 0.2", 7: "0.1 inf 0.3"}, "2 of 10 points are NaN or infinite"),
+    ({4: "0.1 abc 0.3"}, "'abc' is not a number"),
+])
+def test_an_ascii_ply_value_open3d_cannot_read_is_named(tmp_path, bad_rows, message):
+    # Open3D stops at "inf" or a word and fills the rest with zeros, so its own count would be wrong
+    rows = [" ".join(f"{v:.4f}" for v in p) for p in np.random.default_rng(2).uniform(size=(10, 3))]
+    for index, row in bad_rows.items():
+        rows[index] = row
+    path = tmp_path / "p.ply"
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 10\nproperty float x\nproperty float y\n"
+                    "property float z\nend_header\n" + "\n".join(rows) + "\n")
+    with pytest.raises(ValueError, match=message):
+        load_cloud(path)
+
+
 def test_a_failed_write_leaves_no_temporary_file(tmp_path):
     from pipeline.cli import CliError, _replace_file
 

@@ -94,6 +94,58 @@ def test_a_recording_that_fails_inside_its_first_frame_keeps_the_old_file(tmp_pa
     assert out.read_bytes() == b"an earlier session"
 
 
+class EndsAfter(UnpluggedAfter):
+    """A playback that ends after a few frames."""
+
+    def read(self):
+        return self.frames.pop(0) if self.frames else None
+
+
+@pytest.mark.parametrize("source_frames, duration, message", [
+    ([], None, "the source ended before its first frame"),
+    (None, 1e-9, "no frame arrived within 1e-09 s"),
+])
+def test_a_recording_of_no_frames_is_an_error_and_keeps_the_old_file(tmp_path, monkeypatch, source_frames,
+                                                                     duration, message):
+    import pipeline.sources
+
+    if source_frames is None:
+        source_frames = list(virtual_bed_source(VirtualBedRig(seed=1, views=1))[0])
+    monkeypatch.setattr(pipeline.sources, "make_source", lambda *a, **k: EndsAfter(source_frames))
+    out = tmp_path / "old.mcap"
+    out.write_bytes(b"an earlier session")
+    args = ["record", "--camera", "realsense", "--out", out, "--overwrite", "--quiet"]
+    one_line_error(run(*args, *(["--duration", duration] if duration is not None else [])),
+                   f"{message}; nothing was recorded, {out} is as it was")
+    assert out.read_bytes() == b"an earlier session" and sorted(p.name for p in tmp_path.iterdir()) == ["old.mcap"]
+
+
+def test_ctrl_c_that_a_library_turns_into_another_error_is_reported_as_an_interrupt(tmp_path, monkeypatch):
+    """A C extension loading when Ctrl-C arrives raises ImportError("initialization failed")."""
+    import signal
+
+    import pipeline.sources
+
+    def load(interrupt: bool):
+        def make_source(*args, **kwargs):
+            try:
+                if interrupt:
+                    signal.raise_signal(signal.SIGINT)
+            except KeyboardInterrupt:
+                pass
+            raise ImportError("initialization failed")
+        return make_source
+
+    handler = signal.getsignal(signal.SIGINT)
+    args = ("record", "--camera", "realsense", "--out", tmp_path / "r.mcap", "--quiet")
+    monkeypatch.setattr(pipeline.sources, "make_source", load(interrupt=False))
+    one_line_error(run(*args), "initialization failed")
+    monkeypatch.setattr(pipeline.sources, "make_source", load(interrupt=True))
+    result = run(*args)
+    assert result.returncode == 130 and result.stderr == "mushroom-pose record: interrupted\n"
+    assert signal.getsignal(signal.SIGINT) is handler and not list(tmp_path.iterdir())
+
+
 def test_depth_and_colour_of_different_sizes_are_refused():
     from capture.frames import CameraIntrinsics, DepthFrame
 
