@@ -276,8 +276,8 @@ def record(source: Source, path: str | os.PathLike, duration_s: float | None = N
            on_frame: Callable[[int, DepthFrame], None] | None = None) -> RecordingSummary:
     """Pull frames from ``source`` into an MCAP until it ends, ``duration_s`` (wall clock) passes, or
     SIGINT/SIGTERM arrives (see ``graceful_stop``). The file is finalised in every case, also when an
-    exception propagates. Stopping before the first frame raises ValueError and leaves no file (an
-    empty recording would only fail later, in ``calibrate`` or ``replay``). ``on_frame(frames_written,
+    exception propagates. Stopping before the first frame leaves no file (an empty recording would only
+    fail later, in ``calibrate`` or ``replay``) and raises ValueError, or KeyboardInterrupt for a signal. ``on_frame(frames_written,
     frame)`` runs after each frame is written. The caller owns the source (opens/closes it)."""
     from tqdm import tqdm
 
@@ -302,8 +302,9 @@ def record(source: Source, path: str | os.PathLike, duration_s: float | None = N
         if not recorder.frames:
             if stopped_by == "duration":
                 raise ValueError(f"no frame arrived within {duration_s:g} s")
-            raise ValueError("the source ended before its first frame" if stopped_by == "end"
-                             else f"stopped by {stopped_by} before the first frame")
+            if stopped_by == "end":
+                raise ValueError("the source ended before its first frame")
+            raise KeyboardInterrupt
     return RecordingSummary(recorder.frames, recorder.path.stat().st_size, time.monotonic() - start,
                             recorder.path, stopped_by)
 

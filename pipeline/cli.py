@@ -571,9 +571,11 @@ def main(argv: list[str] | None = None) -> int:
     # Installed before numpy and each command's libraries load: C extensions turn a Ctrl-C during
     # their loading into other errors, such as ImportError("initialization failed"). An ignored
     # SIGINT (a background job) stays ignored.
-    previous = None
-    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
-        previous = signal.signal(signal.SIGINT, on_interrupt)
+    previous = signal.getsignal(signal.SIGINT) if threading.current_thread() is threading.main_thread() else None
+    if previous in (signal.SIG_IGN, None):
+        previous = None
+    else:
+        signal.signal(signal.SIGINT, on_interrupt)
     command = "mushroom-pose"
     try:
         args = build_parser().parse_args(argv)
@@ -595,5 +597,16 @@ def main(argv: list[str] | None = None) -> int:
     return 130
 
 
+def console_main() -> None:
+    """The ``mushroom-pose`` command. After an interrupt it exits without running exit handlers:
+    Open3D, interrupted while it loaded, would print a leak report and turn status 130 into 1."""
+    code = main()
+    if code == 130:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    console_main()

@@ -56,10 +56,11 @@ def load_cloud(path: Path) -> LoadedCloud:
     elif suffix in (".ply", ".pcd"):
         import open3d as o3d
 
-        if suffix == ".ply":
-            _check_ply_length(path)
+        ascii_xyz = _check_ply(path) if suffix == ".ply" else None
         cloud = o3d.io.read_point_cloud(str(path))
         points = np.asarray(cloud.points, np.float64)
+        if ascii_xyz is not None:
+            _agree_with_open3d(path, points, ascii_xyz)
         if len(points) == 0:
             raise ValueError(f"{path}: the cloud is empty or not a readable {suffix} file")
         in_bed = False
@@ -80,19 +81,20 @@ def load_cloud(path: Path) -> LoadedCloud:
     return LoadedCloud(points, in_bed, scale, extent)
 
 
-def _check_ply_length(path: Path) -> None:
+def _check_ply(path: Path) -> np.ndarray | None:
     """ValueError if a PLY is shorter than its header's vertices need: bytes for a binary file, values
     for an ASCII one (a lower bound when other elements come first). Open3D reads a cut-short file
-    with only a warning, filling the missing points with zeros."""
+    with only a warning, leaving the missing points unread. For an ASCII file whose first element is
+    the vertices, also returns their x, y, z as read here, for ``_agree_with_open3d``."""
     with open(path, "rb") as file:
         head = file.read(65536)
     end = re.search(rb"(?m)^end_header[ \t]*\r?$", head)
     if not head.startswith(b"ply") or end is None:
-        return
+        return None
     header_bytes = end.end() + 1
     lines = head[:end.start()].decode("ascii", "replace").split("\n")
     formats = [line.split()[1] for line in lines if line.split()[:1] == ["format"] and len(line.split()) > 1]
-    vertices, record, properties, in_vertex, elements = None, 0, 0, False, 0
+    vertices, record, names, in_vertex, elements = None, 0, [], False, 0
     for words in (line.split() for line in lines):
         if words[:1] == ["element"] and len(words) == 3:
             if in_vertex:
@@ -103,44 +105,36 @@ def _check_ply_length(path: Path) -> None:
                 vertices = int(words[2])
         elif in_vertex and words[:1] == ["property"]:
             if len(words) != 3 or words[1] not in _PLY_SIZES:
-                return
+                return None
             record += _PLY_SIZES[words[1]]
-            properties += 1
+            names.append(words[2])
     if vertices is None or not formats:
-        return
+        return None
     if formats[0] == "ascii":
         with open(path, "rb") as file:
             file.seek(header_bytes)
             values = file.read().split()
-        if len(values) < vertices * properties:
-            raise ValueError(f"{path} is cut short: its header lists {vertices} points of {properties} values "
+        if len(values) < vertices * len(names):
+            raise ValueError(f"{path} is cut short: its header lists {vertices} points of {len(names)} values "
                              f"but the file holds {len(values)} values")
-        if elements == 1:
-            _check_ascii_vertices(path, values[:vertices * properties], properties)
-        return
+        if elements == 1 and {"x", "y", "z"} <= set(names):
+            return _ascii_xyz(path, values[:vertices * len(names)], names)
+        return None
     needed = header_bytes + vertices * record
     if path.stat().st_size < needed:
         raise ValueError(f"{path} is cut short: its header lists {vertices} points ({needed} bytes) but the file "
                          f"has {path.stat().st_size} bytes")
+    return None
 
 
-def _check_ascii_vertices(path: Path, values: list[bytes], properties: int) -> None:
-    """ValueError naming the points Open3D would misread: it stops at a value it cannot parse ("inf",
-    a word) and fills the rest of the cloud with zeros, so NaN or infinite points are counted here."""
+def _ascii_xyz(path: Path, values: list[bytes], names: list[str]) -> np.ndarray:
     try:
-        table = np.array(values, dtype=np.float64).reshape(-1, properties)
+        table = np.array(values, dtype=np.float64).reshape(-1, len(names))
     except ValueError:
         word = next(v for v in values if not _is_number(v))
         raise ValueError(f"{path}: {word.decode('ascii', 'replace')!r} is not a number; "
                          f"the file is not a readable ASCII PLY") from None
-    _refuse_nonfinite(path, table)
-
-
-def _refuse_nonfinite(path: Path, rows: np.ndarray) -> None:
-    bad = np.count_nonzero(~np.isfinite(rows).all(1))
-    if bad:
-        raise ValueError(f"{path}: {bad} of {len(rows)} points are NaN or infinite; "
-                         "remove them (invalid depth) and try again")
+    return table[:, [names.index(axis) for axis in "xyz"]]
 
 
 def _is_number(value: bytes) -> bool:
@@ -149,3 +143,21 @@ def _is_number(value: bytes) -> bool:
         return True
     except ValueError:
         return False
+
+
+def _agree_with_open3d(path: Path, points: np.ndarray, xyz: np.ndarray) -> None:
+    """ValueError where Open3D read an ASCII PLY's points differently from ``_ascii_xyz``: it stops at a
+    value it cannot parse ("inf", "1_0", a word in any column) and leaves the rest of the cloud unread."""
+    _refuse_nonfinite(path, xyz)
+    differs = np.flatnonzero(~np.isclose(points, xyz, rtol=1e-5, atol=1e-9).all(1)) if len(points) == len(xyz) \
+        else np.array([min(len(points), len(xyz))])
+    if len(differs):
+        raise ValueError(f"{path}: a value at or before point {differs[0]} cannot be read (Open3D stops there); "
+                         "the file is not a readable ASCII PLY")
+
+
+def _refuse_nonfinite(path: Path, rows: np.ndarray) -> None:
+    bad = np.count_nonzero(~np.isfinite(rows).all(1))
+    if bad:
+        raise ValueError(f"{path}: {bad} of {len(rows)} points are NaN or infinite; "
+                         "remove them (invalid depth) and try again")

@@ -190,17 +190,27 @@ def test_ply_length_check_reads_the_header_as_the_format_says(tmp_path, layout):
 
 
 @pytest.mark.parametrize("bad_rows, message", [
-    ({3: "nan 0.1 0.2", 7: "0.1 inf 0.3"}, "2 of 10 points are NaN or infinite"),
-    ({4: "0.1 abc 0.3"}, "'abc' is not a number"),
+    ({3: "nan 0.1 0.2 0 0 1", 7: "0.1 inf 0.3 0 0 1"}, "2 of 10 points are NaN or infinite"),
+    ({4: "0.1 abc 0.3 0 0 1"}, "'abc' is not a number"),
+    ({4: "0.1 1_0 0.3 0 0 1"}, "at or before point 4 cannot be read"),
+    ({6: "0.1 0.2 0.3 0 inf 1"}, "at or before point 7 cannot be read"),  # point 6 kept its x, y, z
+    ({2: "0.1 0.2 0.3 nan nan nan"}, None),
 ])
 def test_an_ascii_ply_value_open3d_cannot_read_is_named(tmp_path, bad_rows, message):
-    # Open3D stops at "inf" or a word and fills the rest with zeros, so its own count would be wrong
-    rows = [" ".join(f"{v:.4f}" for v in p) for p in np.random.default_rng(2).uniform(size=(10, 3))]
+    """Open3D stops at "inf", "1_0" or a word, in any column, and leaves the rest of the cloud unread;
+    NaN normals (where none could be estimated) are fine, only the points must be finite."""
+    points = np.random.default_rng(2).uniform(size=(10, 3))
+    rows = [" ".join(f"{v:.4f}" for v in p) + " 0 0 1" for p in points]
     for index, row in bad_rows.items():
         rows[index] = row
     path = tmp_path / "p.ply"
-    path.write_text("ply\nformat ascii 1.0\nelement vertex 10\nproperty float x\nproperty float y\n"
-                    "property float z\nend_header\n" + "\n".join(rows) + "\n")
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 10\n"
+                    + "".join(f"property float {name}\n" for name in ("x", "y", "z", "nx", "ny", "nz"))
+                    + "end_header\n" + "\n".join(rows) + "\n")
+    if message is None:
+        points[2] = [0.1, 0.2, 0.3]
+        np.testing.assert_allclose(load_cloud(path).points, points, atol=1e-4)
+        return
     with pytest.raises(ValueError, match=message):
         load_cloud(path)
 

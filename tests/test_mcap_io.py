@@ -211,6 +211,20 @@ def test_record_stops_after_its_duration(tmp_path):
     assert len(list(McapSource(tmp_path / "timed.mcap"))) == summary.frames
 
 
+def test_a_stop_signal_before_the_first_frame_leaves_no_file(tmp_path, monkeypatch):
+    import capture.mcap_io
+
+    class SignalledWhileOpening(McapRecorder):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            signal.raise_signal(signal.SIGTERM)
+
+    monkeypatch.setattr(capture.mcap_io, "McapRecorder", SignalledWhileOpening)
+    with pytest.raises(KeyboardInterrupt):
+        record(TickSource(), tmp_path / "r.mcap", progress=False)
+    assert not list(tmp_path.iterdir())
+
+
 CHILD = """
 import signal
 import sys
