@@ -277,8 +277,9 @@ def record(source: Source, path: str | os.PathLike, duration_s: float | None = N
     """Pull frames from ``source`` into an MCAP until it ends, ``duration_s`` (wall clock) passes, or
     SIGINT/SIGTERM arrives (see ``graceful_stop``). The file is finalised in every case, also when an
     exception propagates. Stopping before the first frame leaves no file (an empty recording would only
-    fail later, in ``calibrate`` or ``replay``) and raises ValueError, or KeyboardInterrupt for a signal. ``on_frame(frames_written,
-    frame)`` runs after each frame is written. The caller owns the source (opens/closes it)."""
+    fail later, in ``calibrate`` or ``replay``) and raises ValueError, or KeyboardInterrupt for a
+    signal. ``on_frame(frames_written, frame)`` runs after each frame is written. The caller owns the
+    source (opens/closes it)."""
     from tqdm import tqdm
 
     start = time.monotonic()
