@@ -15,12 +15,9 @@ from perception.instances import ClusterConfig, cluster
 from perception.model import LENGTH_UNIT, MushroomNet, voxel_features
 from perception.pose import CapFit, fit_caps
 from perception.sparse import COORD_MAX, SparseTensor, voxelize
-from perception.synthetic.scene import SceneConfig
 
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "default.pt"
-TRAINING_SPACING = SceneConfig().voxel
-"""Point spacing of the synthetic training scenes (metres): the density the network expects."""
 INFERENCE_ZOOM = 1.1
 """The network reads a cloud scaled up by this factor, i.e. at its voxel / 1.1: a small cap, the kind
 it misses or tilts wrongly, then spans more voxels, and 1.1 is still inside training's scale jitter.
@@ -64,18 +61,18 @@ def network_input(points: np.ndarray, voxel: float, device: torch.device | str =
 
 
 @torch.no_grad()
-def predict(model: MushroomNet, points: np.ndarray, spacing: float | None = TRAINING_SPACING,
+def predict(model: MushroomNet, points: np.ndarray, thin: bool = True,
             zoom: float = INFERENCE_ZOOM) -> VoxelPrediction:
     """The network's encoding for a cloud in the bed frame; ``point_to_voxel`` covers every input point.
 
-    The network was trained on clouds with one point per ``spacing`` (the synthetic scenes' voxel), a
-    sparse shell of voxels. A denser cloud (fused, or straight from a camera) fills every voxel the
-    surface touches, an input it never saw: on virtual 4-view beds AP@25 fell from 0.90 to 0.54. So a
-    cloud with over twice as many points as ``spacing`` cells (training scenes have 1-1.5) is first
-    thinned to one point per cell (None: never), and points whose voxel lost its points take the
-    prediction of the nearest kept voxel. Clouds at training density are used as they are (thinning
-    them cost 3 points of AP@25 on val50). The network then reads the cloud scaled by ``zoom``; what
-    it returns is in the cloud's own metres again.
+    The network was trained on clouds with one point per ``model.point_spacing`` (the synthetic
+    scenes' voxel). A much denser cloud (fused, or straight from a camera) is an input it never saw:
+    a model trained at 5.1 mm spacing, a sparse shell of voxels, fell from AP@25 0.90 to 0.54 on
+    virtual 4-view beds. So with ``thin``, a cloud with over twice as many points as spacing cells
+    (training scenes have 1-1.5) is first thinned to one point per cell, and points whose voxel lost
+    its points take the prediction of the nearest kept voxel. Clouds at training density are used as
+    they are (thinning them cost 3 points of AP@25 on val50). The network then reads the cloud scaled
+    by ``zoom``; what it returns is in the cloud's own metres again.
     """
     points = np.asarray(points, np.float64)
     if len(points) == 0:
@@ -86,8 +83,8 @@ def predict(model: MushroomNet, points: np.ndarray, spacing: float | None = TRAI
         raise ValueError(f"the cloud reaches {reach:.3g} m from the bed origin, beyond the voxel grid's "
                          f"{grid:.0f} m: bring it near the origin")
     kept = np.arange(len(points))
-    if spacing:
-        representatives = voxel_representatives(points, spacing)
+    if thin and model.point_spacing:
+        representatives = voxel_representatives(points, model.point_spacing)
         if len(points) > 2 * len(representatives):
             kept = representatives
     device = next(model.parameters()).device

@@ -125,9 +125,11 @@ def _up(in_ch: int, out_ch: int) -> nn.ModuleDict:
 class MushroomNet(nn.Module):
     """Sparse U-Net backbone + per-voxel head; geometry only (``voxel_features``), never colour."""
 
-    def __init__(self, config: NetworkConfig = NetworkConfig()):
+    def __init__(self, config: NetworkConfig = NetworkConfig(), point_spacing: float | None = None):
         super().__init__()
         self.config = config
+        self.point_spacing = point_spacing
+        """Point spacing of the beds it was trained on: inference thins denser clouds to it."""
         c1, c2, c3, c4 = config.channels
         u1, u2, u3, u4 = config.up_channels
         self.relu = SparseReLU()

@@ -255,7 +255,7 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
     run_dir.mkdir(parents=True, exist_ok=True)
     network_config = NETWORK_PRESETS[config.network]
     torch.manual_seed(config.seed)
-    model = MushroomNet(network_config).to(device)
+    model = MushroomNet(network_config, point_spacing=config.scene.voxel).to(device)
     init = None
     if config.init_weights and not resume:
         initial, base = load_weights(Path(config.init_weights), device)
@@ -287,7 +287,8 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
     validation = None
     if config.validation_scenes > 0:
         from perception.synthetic.dataset import load_preset
-        validation = load_preset("val50", progress=False, limit=config.validation_scenes)
+        validation = load_preset("val50", progress=False, limit=config.validation_scenes,
+                                 spacing=config.scene.voxel)
 
     rec = None
     if rerun:
@@ -416,7 +417,8 @@ def load_weights(path: Path, device: str = "cpu") -> tuple[MushroomNet, dict]:
     try:
         state = torch.load(path, map_location=device, weights_only=False)
         network = NetworkConfig.from_dict(state["network"])
-        model = MushroomNet(network).to(device)
+        spacing = state.get("train_config", {}).get("scene", {}).get("voxel")
+        model = MushroomNet(network, point_spacing=spacing).to(device)
         model.load_state_dict(state["model"])
     except FileNotFoundError:
         raise

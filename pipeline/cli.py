@@ -119,12 +119,16 @@ _seed = _at_most(_non_negative_int, 2**63 - 1, " (seeds are below 2^63)")
 _threads = _at_most(_positive(int), 4 * CORES, f" (4 per core; this machine has {CORES})")
 _learning_rate = _at_most(_positive(float), 1.0, " (Adam's steps are about this size in every weight)")
 _mushroom_count = _at_most(_non_negative_int, MAX_MUSHROOMS, " (a 0.5 m bed is full at about 260)")
+_spacing = _at_most(_positive(float), 0.02, " metres (0.003 is 3 mm)")
+SPACING_HELP = "0.003, the generator's: every 4.5 mm voxel a surface crosses holds a point"
+"""The parser imports no numpy (Ctrl-C while libraries load), so SceneConfig's default is named here."""
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from perception.synthetic.dataset import (PRESETS, generate_many, log_scene, scene_seeds, write_scene)
+    from perception.synthetic.dataset import (PRESETS, generate_many, log_scene, preset_config, scene_seeds,
+                                              write_scene)
     from perception.synthetic.scene import SceneConfig
     from pipeline.rerun_sink import rerun_stream, set_frame
 
@@ -137,10 +141,11 @@ def cmd_synth(args: argparse.Namespace) -> int:
     if args.preset:
         preset = PRESETS[args.preset]
         seeds = scene_seeds(preset.seed, preset.scenes)
-        config = SceneConfig(**{**preset.config.__dict__, "visibility": args.visibility})
+        config = preset_config(args.preset, args.visibility, args.spacing)
     else:
         seeds = scene_seeds(args.seed, args.scenes)
-        config = SceneConfig(mushrooms=(low, high), visibility=args.visibility)
+        config = SceneConfig(mushrooms=(low, high), visibility=args.visibility,
+                             **({"voxel": args.spacing} if args.spacing else {}))
     mushrooms, points, started = [], [], time.perf_counter()
     with rerun_stream(rrd) as rec:
         for index, scene in enumerate(generate_many(seeds, config, progress=not args.quiet)):
@@ -177,6 +182,7 @@ class _Parser(argparse.ArgumentParser):
 
 def train_config(args: argparse.Namespace):
     """The TrainConfig that ``mushroom-pose train`` runs with these arguments."""
+    from perception.synthetic.scene import SceneConfig
     from perception.train import TrainConfig
 
     return TrainConfig(iterations=args.iterations, lr=args.lr, network=args.network, seed=args.seed,
@@ -185,6 +191,7 @@ def train_config(args: argparse.Namespace):
                        weight_residual=args.weight_residual, weight_orientation=args.weight_orientation,
                        orientation_on_caps=args.orientation_on_caps, cap_balance=args.cap_balance,
                        scale_jitter=tuple(args.scale_jitter),
+                       scene=SceneConfig(**({"voxel": args.spacing} if args.spacing else {})),
                        init_weights=str(Path(args.init).resolve()) if args.init else None)
 
 
@@ -343,11 +350,14 @@ def cmd_eval(args: argparse.Namespace) -> int:
     report = {}
     for name in args.set:
         try:
-            scenes = load_preset(name, args.visibility, progress=not args.quiet, limit=args.scenes)
+            scenes = load_preset(name, args.visibility, progress=not args.quiet, limit=args.scenes,
+                                 spacing=args.spacing)
         except ValueError as error:
             raise CliError(str(error)) from None
         results = evaluate_on_scenes(model, scenes, height=args.height, axis=args.axis, progress=not args.quiet)
-        print(_eval_table(name + (f" (first {len(scenes)} scenes)" if args.scenes else ""), results))
+        label = name + (f" at {1000 * args.spacing:g} mm spacing" if args.spacing else "") + \
+            (f" (first {len(scenes)} scenes)" if args.scenes else "")
+        print(_eval_table(label, results))
         report[name] = {method: result.as_dict() for method, result in results.items()}
     if json_path is not None:
         _replace_file(json_path, json.dumps(report, indent=1))
@@ -457,6 +467,7 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--visibility", choices=["hpr", "camera", "katz"], default="hpr",
                        help="hpr: hidden point removal (z-buffer); camera: virtual depth camera; "
                             "katz: the paper's spherical-flip operator (slow)")
+    synth.add_argument("--spacing", type=_spacing, help=f"point spacing in metres (default {SPACING_HELP})")
     synth.add_argument("--out", required=True, help="output folder")
     synth.add_argument("--rrd", help="also log the scenes to this Rerun recording")
     synth.add_argument("--no-ply", action="store_true", help="write only the .npz files")
@@ -492,6 +503,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--scale-jitter", type=_positive(float), nargs=2, default=[0.9, 1.1], metavar=("LOW", "HIGH"),
                        help="scale each training bed by a factor drawn from [LOW, HIGH] (default 0.9 1.1); "
                             "the shipped model reads clouds zoomed by perception.detect.INFERENCE_ZOOM")
+    train.add_argument("--spacing", type=_spacing, help=f"point spacing of the training beds in metres (default "
+                       f"{SPACING_HELP})")
     train.add_argument("--init", help="start from these weights (fine-tuning), e.g. perception/weights/default.pt")
     train.add_argument("--resume", action="store_true", help="continue the checkpoint in --out exactly")
     train.add_argument("--max-minutes", type=_positive(float),
@@ -521,6 +534,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--axis", choices=["surface", "encoding"], default="surface",
                           help="cap axis: the encoding's refined by the cap's surface (default), or the "
                           "encoding's alone, as in the paper")
+    evaluate.add_argument("--spacing", type=_spacing,
+                          help=f"the same beds at this point spacing in metres (default {SPACING_HELP}; "
+                               "0.0051 gives the sets used up to session 15)")
     evaluate.add_argument("--scenes", type=_positive(int), help="only the first N scenes of each set")
     evaluate.add_argument("--quiet", action="store_true")
     evaluate.set_defaults(run=cmd_eval)

@@ -6,26 +6,27 @@ import torch
 from scipy.spatial import cKDTree
 
 from capture.frames import voxel_representatives
-from perception.detect import TRAINING_SPACING, predict
+from perception.detect import predict
 from helpers import tiny_network_config
 from perception.model import MushroomNet
 from perception.synthetic.scene import SceneConfig, generate_scene
 
 TINY = tiny_network_config()
+SPACING = SceneConfig().voxel
 
 
 @pytest.mark.parametrize("zoom", [1.0, 1.1])
 def test_a_dense_cloud_is_thinned_to_the_training_spacing_and_every_point_keeps_a_prediction(zoom):
     torch.manual_seed(0)
-    model = MushroomNet(TINY).eval()
+    model = MushroomNet(TINY, point_spacing=SPACING).eval()
     scene = generate_scene(2, SceneConfig(mushrooms=(5, 5)))
     rng = np.random.default_rng(0)
     dense = np.concatenate([scene.points + rng.normal(0, 0.0007, scene.points.shape) for _ in range(6)])
-    kept = voxel_representatives(dense, TRAINING_SPACING)
+    kept = voxel_representatives(dense, SPACING)
     assert len(dense) > 2 * len(kept)
 
     thinned = predict(model, dense, zoom=zoom)
-    direct = predict(model, dense[kept], spacing=None, zoom=zoom)
+    direct = predict(model, dense[kept], thin=False, zoom=zoom)
     assert np.array_equal(thinned.centroids, direct.centroids)
     assert np.allclose(thinned.existence, direct.existence) and np.allclose(thinned.centers, direct.centers)
     assert np.array_equal(thinned.point_to_voxel[kept], direct.point_to_voxel)
@@ -45,19 +46,36 @@ def test_a_dense_cloud_is_thinned_to_the_training_spacing_and_every_point_keeps_
 
 def test_a_cloud_at_training_density_is_used_as_it_is():
     torch.manual_seed(0)
-    model = MushroomNet(TINY).eval()
+    model = MushroomNet(TINY, point_spacing=SPACING).eval()
     points = generate_scene(3, SceneConfig(mushrooms=(5, 5))).points
-    assert np.array_equal(predict(model, points).existence, predict(model, points, spacing=None).existence)
+    assert np.array_equal(predict(model, points).existence, predict(model, points, thin=False).existence)
 
 
 def test_zoom_is_the_same_network_on_the_scaled_cloud_with_answers_in_the_cloud_metres():
     torch.manual_seed(0)
-    model = MushroomNet(TINY).eval()
+    model = MushroomNet(TINY, point_spacing=SPACING).eval()
     points = generate_scene(4, SceneConfig(mushrooms=(5, 5))).points
     zoomed = predict(model, points, zoom=1.1)
-    scaled = predict(model, 1.1 * points, spacing=None, zoom=1.0)
+    scaled = predict(model, 1.1 * points, thin=False, zoom=1.0)
     np.testing.assert_allclose(zoomed.centroids * 1.1, scaled.centroids, atol=1e-12)
     np.testing.assert_allclose(zoomed.centers * 1.1, scaled.centers, atol=1e-9)
     np.testing.assert_array_equal(zoomed.existence, scaled.existence)
     np.testing.assert_array_equal(zoomed.orientation, scaled.orientation)
     assert len(zoomed.centroids) > len(predict(model, points, zoom=1.0).centroids)
+
+
+def test_a_model_thins_clouds_to_the_spacing_it_was_trained_at(tmp_path):
+    from perception.train import TrainConfig, load_weights, save_weights
+
+    torch.manual_seed(0)
+    points = generate_scene(3, SceneConfig(mushrooms=(5, 5), voxel=0.003)).points
+    for spacing in (0.003, 0.0051):
+        path = tmp_path / f"{spacing}.pt"
+        save_weights(MushroomNet(TINY), path, train_config=TrainConfig(scene=SceneConfig(voxel=spacing)).to_dict())
+        model, _ = load_weights(path)
+        assert model.point_spacing == spacing
+        kept = voxel_representatives(points, spacing)
+        thinned = len(points) > 2 * len(kept)
+        assert thinned == (spacing == 0.0051)
+        expected = predict(model, points[kept] if thinned else points, thin=False)
+        np.testing.assert_array_equal(predict(model, points).centroids, expected.centroids)

@@ -164,6 +164,19 @@ def test_presets_have_fixed_distinct_seeds_and_are_cached(tmp_path, monkeypatch)
     np.testing.assert_array_equal(first[1].points, second[1].points)
 
 
+def test_a_preset_at_another_spacing_is_the_same_beds_cached_apart(tmp_path, monkeypatch):
+    monkeypatch.setenv("MUSHROOM_POSE_CACHE", str(tmp_path))
+    monkeypatch.setitem(PRESETS, "tiny", PRESETS["val50"].__class__(seed=3, scenes=1))
+    default, = load_preset("tiny", progress=False)
+    coarse, = load_preset("tiny", progress=False, spacing=0.0051)
+    assert len({f.parent for f in tmp_path.rglob("*.npz")}) == 2
+    np.testing.assert_array_equal(default.centers, coarse.centers)
+    jitter = SceneConfig().jitter
+    assert jitter[0] * 0.0051 <= coarse.voxel <= jitter[1] * 0.0051
+    assert jitter[0] * SceneConfig().voxel <= default.voxel <= jitter[1] * SceneConfig().voxel
+    assert len(default.points) > 2 * len(coarse.points)
+
+
 def test_voxel_representatives_keep_the_first_point_of_every_voxel():
     from capture.frames import voxel_representatives
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Iterator
 
@@ -40,8 +40,14 @@ def cache_root() -> Path:
     return Path(os.environ.get(CACHE_ENV, Path.home() / ".cache" / "mushroom-pose"))
 
 
-def preset_dir(name: str, visibility: str = "hpr") -> Path:
-    return cache_root() / "synthetic" / f"{name}-{visibility}-v{GENERATOR_VERSION}"
+def preset_config(name: str, visibility: str = "hpr", spacing: float | None = None) -> SceneConfig:
+    """A preset's scene settings, with another visibility model or point spacing when asked."""
+    config = PRESETS[name].config
+    return replace(config, visibility=visibility, voxel=config.voxel if spacing is None else spacing)
+
+
+def preset_dir(name: str, config: SceneConfig) -> Path:
+    return cache_root() / "synthetic" / f"{name}-{config.visibility}-{1000 * config.voxel:g}mm-v{GENERATOR_VERSION}"
 
 
 def scene_path(out_dir: Path, index: int) -> Path:
@@ -85,14 +91,15 @@ def generate_many(seeds: list[int], config: SceneConfig, progress: bool = True,
 
 
 def load_preset(name: str, visibility: str = "hpr", progress: bool = True,
-                limit: int | None = None) -> list[SyntheticScene]:
-    """The scenes (the first ``limit``) of a named preset, generated once and cached on disk (never committed)."""
+                limit: int | None = None, spacing: float | None = None) -> list[SyntheticScene]:
+    """The scenes (the first ``limit``) of a named preset, generated once and cached on disk (never
+    committed); ``spacing`` makes the same beds at another point spacing."""
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
     preset = PRESETS[name]
-    directory = preset_dir(name, visibility)
+    config = preset_config(name, visibility, spacing)
+    directory = preset_dir(name, config)
     seeds = scene_seeds(preset.seed, preset.scenes)
-    config = SceneConfig(**{**preset.config.__dict__, "visibility": visibility})
     count = preset.scenes if limit is None else min(limit, preset.scenes)
     scenes: dict[int, SyntheticScene] = {}
     for index in range(count):
