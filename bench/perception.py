@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from sklearn.cluster import MeanShift
 
-from perception.detect import DEFAULT_WEIGHTS, INFERENCE_ZOOM, network_input, network_output
+from perception.detect import DEFAULT_WEIGHTS, INFERENCE_ZOOM, at_training_density, network_input, network_output
 from perception.instances import ClusterConfig, cluster
 from perception.pose import fit_caps
 from perception.synthetic.dataset import load_preset
@@ -47,8 +47,10 @@ def main() -> None:
                             "bins", "encoding")}
     for index, scene in enumerate([scenes[0]] + scenes):
         t0 = time.perf_counter()
-        # as perception.detect.predict: the network reads the zoomed cloud, clustering and pose work in metres
-        coords, point_to_voxel, zoomed_centroids = network_input(args.zoom * scene.points, voxel)
+        # as perception.detect.predict (but for mapping dropped points back to voxels): the network reads
+        # the zoomed cloud at the model's training density, clustering and pose work in metres
+        kept = at_training_density(model, scene.points)
+        coords, point_to_voxel, zoomed_centroids = network_input(args.zoom * scene.points[kept], voxel)
         t1 = time.perf_counter()
         centroids, existence, centers, orientation = network_output(model, coords, zoomed_centroids, args.zoom)
         t2 = time.perf_counter()

@@ -22,7 +22,7 @@ INFERENCE_ZOOM = 1.1
 """The network reads a cloud scaled up by this factor, i.e. at its voxel / 1.1: a small cap, the kind
 it misses or tilts wrongly, then spans more voxels, and 1.1 is still inside training's scale jitter.
 Clustering stays at the model's voxel in the cloud's own metres: caps keep their real size. Shipped
-model, val50, MeanShift, zoom 1 / 1.1: AP@25 98.1 / 98.8 %, AP@50 90.2 / 92.7 %, angle 6.27 / 5.91
+model, val50 at 5.1 mm spacing, MeanShift, zoom 1 / 1.1: AP@25 98.1 / 98.8 %, AP@50 90.2 / 92.7 %, angle 6.27 / 5.91
 degrees. Voxels: 4 % more at the median, 28 % more on the largest bed (model card)."""
 
 
@@ -60,19 +60,29 @@ def network_input(points: np.ndarray, voxel: float, device: torch.device | str =
     return coords.to(device), point_to_voxel, centroids
 
 
+def at_training_density(model: MushroomNet, points: np.ndarray) -> np.ndarray:
+    """Indices of the points the network reads: one per ``model.point_spacing`` cell when the cloud
+    has over twice as many points as such cells (training beds have 1-1.5), else all of them."""
+    if model.point_spacing:
+        representatives = voxel_representatives(points, model.point_spacing)
+        if len(points) > 2 * len(representatives):
+            return representatives
+    return np.arange(len(points))
+
+
 @torch.no_grad()
 def predict(model: MushroomNet, points: np.ndarray, thin: bool = True,
             zoom: float = INFERENCE_ZOOM) -> VoxelPrediction:
     """The network's encoding for a cloud in the bed frame; ``point_to_voxel`` covers every input point.
 
     The network was trained on clouds with one point per ``model.point_spacing`` (the synthetic
-    scenes' voxel). A much denser cloud (fused, or straight from a camera) is an input it never saw:
-    a model trained at 5.1 mm spacing, a sparse shell of voxels, fell from AP@25 0.90 to 0.54 on
-    virtual 4-view beds. So with ``thin``, a cloud with over twice as many points as spacing cells
-    (training scenes have 1-1.5) is first thinned to one point per cell, and points whose voxel lost
-    its points take the prediction of the nearest kept voxel. Clouds at training density are used as
-    they are (thinning them cost 3 points of AP@25 on val50). The network then reads the cloud scaled
-    by ``zoom``; what it returns is in the cloud's own metres again.
+    scenes' voxel; None: unknown, never thin). A much denser cloud (fused, or straight from a camera)
+    is an input it never saw: a model trained at 5.1 mm spacing, a sparse shell of voxels, fell from
+    AP@25 0.90 to 0.54 on virtual 4-view beds. So with ``thin``, such a cloud is first thinned
+    (``at_training_density``), and points whose voxel lost its points take the prediction of the
+    nearest kept voxel. Clouds at training density are used as they are (thinning them cost 3 points
+    of AP@25 on the 5.1 mm val50). The network then reads the cloud scaled by ``zoom``; what it
+    returns is in the cloud's own metres again.
     """
     points = np.asarray(points, np.float64)
     if len(points) == 0:
@@ -82,11 +92,7 @@ def predict(model: MushroomNet, points: np.ndarray, thin: bool = True,
     if not reach < grid:
         raise ValueError(f"the cloud reaches {reach:.3g} m from the bed origin, beyond the voxel grid's "
                          f"{grid:.0f} m: bring it near the origin")
-    kept = np.arange(len(points))
-    if thin and model.point_spacing:
-        representatives = voxel_representatives(points, model.point_spacing)
-        if len(points) > 2 * len(representatives):
-            kept = representatives
+    kept = at_training_density(model, points) if thin else np.arange(len(points))
     device = next(model.parameters()).device
     coords, kept_to_voxel, zoomed_centroids = network_input(zoom * points[kept], model.config.voxel, device)
     centroids, existence, centers, orientation = network_output(model, coords, zoomed_centroids, zoom)

@@ -101,6 +101,18 @@ def augmented_sample(config: TrainConfig, iteration: int) -> dict[str, np.ndarra
             "instance": np.where(targets.existence > 0, scene.instance[keep], -1).astype(np.int64)}
 
 
+def _differences(saved: dict, asked: dict, prefix: str = "") -> str:
+    """'name: saved there, asked here' for each field that differs, nested fields as scene.voxel."""
+    found = []
+    for name in sorted(set(saved) | set(asked)):
+        there, here = saved.get(name), asked.get(name)
+        if isinstance(there, dict) and isinstance(here, dict):
+            found.append(_differences(there, here, f"{prefix}{name}."))
+        elif there != here:
+            found.append(f"{prefix}{name}: {there} there, {here} here")
+    return ", ".join(f for f in found if f)
+
+
 def _all_finite(model: torch.nn.Module) -> bool:
     """Whether every weight and running statistic is a finite number (a diverged run's are not)."""
     return all(torch.isfinite(value).all() for value in model.state_dict().values() if value.is_floating_point())
@@ -271,8 +283,9 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
     if resume:
         state = _load_checkpoint(checkpoint_path, device)
         # runs saved before a field existed ran with its default
-        if {**TrainConfig().to_dict(), **state["train_config"]} != config.to_dict():
-            raise ValueError(f"{checkpoint_path} was made with a different configuration; "
+        differ = _differences({**TrainConfig().to_dict(), **state["train_config"]}, config.to_dict())
+        if differ:
+            raise ValueError(f"{checkpoint_path} was made with a different configuration ({differ}); "
                              "resume with the same flags or use a new run folder")
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
@@ -409,7 +422,8 @@ def _provenance(path: Path, meta: dict) -> dict:
 
 def save_weights(model: MushroomNet, path: Path, **meta) -> None:
     """The shipped form of a model: its weights, its network config and how it was made."""
-    _atomic_save({"model": model.state_dict(), "network": model.config.to_dict(), **meta}, Path(path))
+    _atomic_save({"model": model.state_dict(), "network": model.config.to_dict(),
+                  "point_spacing": model.point_spacing, **meta}, Path(path))
 
 
 def load_weights(path: Path, device: str = "cpu") -> tuple[MushroomNet, dict]:
@@ -417,7 +431,7 @@ def load_weights(path: Path, device: str = "cpu") -> tuple[MushroomNet, dict]:
     try:
         state = torch.load(path, map_location=device, weights_only=False)
         network = NetworkConfig.from_dict(state["network"])
-        spacing = state.get("train_config", {}).get("scene", {}).get("voxel")
+        spacing = state.get("point_spacing") or ((state.get("train_config") or {}).get("scene") or {}).get("voxel")
         model = MushroomNet(network, point_spacing=spacing).to(device)
         model.load_state_dict(state["model"])
     except FileNotFoundError:

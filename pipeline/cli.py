@@ -100,6 +100,16 @@ def _at_most(parse, limit, reason: str = ""):
     return bounded
 
 
+def _at_least(parse, limit, reason: str = ""):
+    """``parse``, refusing values below ``limit``."""
+    def bounded(text: str):
+        value = parse(text)
+        if value < limit:
+            raise argparse.ArgumentTypeError(f"at least {limit}{reason}, got {text}")
+        return value
+    return bounded
+
+
 MAX_MUSHROOMS = 300
 """More than a 0.5 m bed holds (about 260 caps when packed): asking for more only slows the placer."""
 CORES = os.cpu_count() or 1
@@ -119,7 +129,8 @@ _seed = _at_most(_non_negative_int, 2**63 - 1, " (seeds are below 2^63)")
 _threads = _at_most(_positive(int), 4 * CORES, f" (4 per core; this machine has {CORES})")
 _learning_rate = _at_most(_positive(float), 1.0, " (Adam's steps are about this size in every weight)")
 _mushroom_count = _at_most(_non_negative_int, MAX_MUSHROOMS, " (a 0.5 m bed is full at about 260)")
-_spacing = _at_most(_positive(float), 0.02, " metres (0.003 is 3 mm)")
+_spacing = _at_least(_at_most(_positive(float), 0.02, " metres (0.003 is 3 mm)"), 0.001,
+                     " metres: a finer spacing only multiplies the points (0.003 is 3 mm)")
 SPACING_HELP = "0.003, the generator's: every 4.5 mm voxel a surface crosses holds a point"
 """The parser imports no numpy (Ctrl-C while libraries load), so SceneConfig's default is named here."""
 
@@ -343,7 +354,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     import json
 
     from perception.detect import evaluate_on_scenes
-    from perception.synthetic.dataset import load_preset
+    from perception.synthetic.dataset import load_preset, preset_config
 
     json_path = _writable_file(args.json, inputs=(_model_path(args.model),))
     model, meta = _load_model(args.model)
@@ -358,7 +369,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         label = name + (f" at {1000 * args.spacing:g} mm spacing" if args.spacing else "") + \
             (f" (first {len(scenes)} scenes)" if args.scenes else "")
         print(_eval_table(label, results))
-        report[name] = {method: result.as_dict() for method, result in results.items()}
+        spacing = preset_config(name, args.visibility, args.spacing).voxel
+        report[name] = {method: {**result.as_dict(), "spacing": spacing} for method, result in results.items()}
     if json_path is not None:
         _replace_file(json_path, json.dumps(report, indent=1))
     return 0

@@ -79,16 +79,19 @@ def test_train_flags_set_the_loss_weights_and_defaults_are_the_papers():
     assert (tuned.weight_existence, tuned.weight_residual, tuned.weight_orientation, tuned.orientation_on_caps,
             tuned.cap_balance, tuned.scale_jitter) == (2.0, 50.0, 10.0, True, True, (1.0, 1.2))
     assert default.scene == paper.scene
+    from pipeline.cli import SPACING_HELP
+    assert SPACING_HELP.startswith(f"{paper.scene.voxel:g},")
     spaced = train_config(parse(["train", "--out", "RUN", "--spacing", "0.004"]))
     assert spaced.scene.voxel == 0.004 and spaced.scene == type(paper.scene)(voxel=0.004)
 
 
-def test_a_spacing_given_in_millimetres_gives_one_line_and_exit_2(tmp_path):
+def test_a_spacing_in_millimetres_or_too_fine_gives_one_line_and_exit_2(tmp_path):
     for command in (["train", "--out", str(tmp_path / "run")], ["eval"], ["synth", "--out", str(tmp_path / "s")]):
-        result = run(*command, "--spacing", "3")
-        assert result.returncode == 2 and "Traceback" not in result.stderr
-        lines = result.stderr.strip().splitlines()
-        assert len(lines) == 1 and "--spacing" in lines[0] and "0.003 is 3 mm" in lines[0], result.stderr
+        for spacing in ("3", "1e-9"):
+            result = run(*command, "--spacing", spacing)
+            assert result.returncode == 2 and "Traceback" not in result.stderr
+            lines = result.stderr.strip().splitlines()
+            assert len(lines) == 1 and "--spacing" in lines[0] and "0.003 is 3 mm" in lines[0], result.stderr
     assert not (tmp_path / "run").exists() and not (tmp_path / "s").exists()
 
 

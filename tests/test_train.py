@@ -1,5 +1,7 @@
 """Training: targets agree with the encoding, the loss is the paper's, resume continues exactly."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -164,8 +166,11 @@ def test_resume_continues_exactly(tmp_path, tiny_network):
 def test_resume_with_other_flags_is_refused(tmp_path, tiny_network):
     config = TrainConfig(iterations=2, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
     train(config, tmp_path, progress=False, rerun=False, stop_at=1)
-    with pytest.raises(ValueError, match="different configuration"):
+    with pytest.raises(ValueError, match=r"different configuration \(lr: 0.001 there, 0.5 here\)"):
         train(TrainConfig(**{**config.__dict__, "lr": 0.5}), tmp_path, resume=True, progress=False, rerun=False)
+    with pytest.raises(ValueError, match=r"\(scene.voxel: [0-9.]+ there, 0.0051 here\)"):
+        train(replace(config, scene=replace(config.scene, voxel=0.0051)), tmp_path, resume=True, progress=False,
+              rerun=False)
 
 
 def test_resume_needs_a_readable_checkpoint(tmp_path, tiny_network):
