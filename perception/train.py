@@ -397,12 +397,13 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
     state = torch.load(checkpoint_path, map_location="cpu", weights_only=False)
     model.load_state_dict(state["model"])
     meta = {"train_config": state["train_config"], "iterations": state["iteration"],
-            "train_seconds": state["elapsed_s"]}
+            "train_seconds": state["elapsed_s"], "total_iterations": state["iteration"],
+            "total_train_seconds": state["elapsed_s"]}
     if state.get("init"):
         # a fine-tuned model's cost includes the run it started from
         meta["init"] = state["init"]
-        meta["total_iterations"] = state["iteration"] + state["init"]["total_iterations"]
-        meta["total_train_seconds"] = state["elapsed_s"] + state["init"]["total_train_seconds"]
+        meta["total_iterations"] += state["init"]["total_iterations"]
+        meta["total_train_seconds"] += state["init"]["total_train_seconds"]
     save_weights(model, weights, **meta)
     return weights
 

@@ -548,7 +548,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "encoding's alone, as in the paper")
     evaluate.add_argument("--spacing", type=_spacing,
                           help=f"the same beds at this point spacing in metres (default {SPACING_HELP}; "
-                               "0.0051 gives the sets used up to session 15)")
+                               "0.0051 gives the sets used before session 15)")
     evaluate.add_argument("--scenes", type=_positive(int), help="only the first N scenes of each set")
     evaluate.add_argument("--quiet", action="store_true")
     evaluate.set_defaults(run=cmd_eval)

@@ -159,6 +159,7 @@ def test_resume_continues_exactly(tmp_path, tiny_network):
     for a, b in zip(model_a.state_dict().values(), model_b.state_dict().values()):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
     assert meta["iterations"] == 4 and meta["train_seconds"] > 0
+    assert (meta["total_iterations"], meta["total_train_seconds"]) == (4, meta["train_seconds"])
     history = (tmp_path / "resumed" / "history.csv").read_text().splitlines()
     assert [line.split(",")[0] for line in history[1:]] == ["1", "2", "3", "4"]
 

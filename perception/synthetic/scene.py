@@ -46,7 +46,7 @@ class SceneConfig:
     """Point spacing (metres): the down-sampling voxel of the visibility step, jittered by ``jitter``.
     Finer than the network's 4.1-4.5 mm voxel, so that every voxel the surface crosses holds a point,
     as in a depth camera's or a fused cloud (DESIGN.md section 6b: 1.2 mm spacing). The generator's
-    spacing was 5.1 mm up to session 15, a gappy shell of voxels (model card)."""
+    spacing was 5.1 mm before session 15, a gappy shell of voxels (model card)."""
     jitter: tuple[float, float] = (0.8, 1.2)
     oversample: float = 3.0
     """Surface samples per voxel of area before down-sampling, jittered by ``jitter``."""
