@@ -155,8 +155,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
         config = preset_config(args.preset, args.visibility, args.spacing)
     else:
         seeds = scene_seeds(args.seed, args.scenes)
-        config = SceneConfig(mushrooms=(low, high), visibility=args.visibility,
-                             **({"voxel": args.spacing} if args.spacing else {}))
+        config = SceneConfig(mushrooms=(low, high), visibility=args.visibility, voxel=args.spacing or SceneConfig.voxel)
     mushrooms, points, started = [], [], time.perf_counter()
     with rerun_stream(rrd) as rec:
         for index, scene in enumerate(generate_many(seeds, config, progress=not args.quiet)):
@@ -202,7 +201,7 @@ def train_config(args: argparse.Namespace):
                        weight_residual=args.weight_residual, weight_orientation=args.weight_orientation,
                        orientation_on_caps=args.orientation_on_caps, cap_balance=args.cap_balance,
                        scale_jitter=tuple(args.scale_jitter),
-                       scene=SceneConfig(**({"voxel": args.spacing} if args.spacing else {})),
+                       scene=SceneConfig(voxel=args.spacing or SceneConfig.voxel),
                        init_weights=str(Path(args.init).resolve()) if args.init else None)
 
 
