@@ -133,6 +133,10 @@ _spacing = _at_least(_at_most(_positive(float), 0.02, " metres (0.003 is 3 mm)")
                      " metres: a finer spacing only multiplies the points (0.003 is 3 mm)")
 SPACING_HELP = "0.003, the generator's: every 4.5 mm voxel a surface crosses holds a point"
 """The parser imports no numpy (Ctrl-C while libraries load), so SceneConfig's default is named here."""
+SHIPPED_ZOOM = 1.05
+"""perception.detect.INFERENCE_ZOOM, named here for the same reason."""
+_zoom = _at_least(_at_most(_positive(float), 2.0, " (the network would read caps twice their size)"), 0.5,
+                  " (the network would read caps half their size)")
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
@@ -352,11 +356,12 @@ def _eval_table(name: str, results: dict) -> str:
 def cmd_eval(args: argparse.Namespace) -> int:
     import json
 
-    from perception.detect import evaluate_on_scenes
+    from perception.detect import INFERENCE_ZOOM, evaluate_on_scenes
     from perception.synthetic.dataset import load_preset, preset_config
 
     json_path = _writable_file(args.json, inputs=(_model_path(args.model),))
     model, meta = _load_model(args.model)
+    zoom = INFERENCE_ZOOM if args.zoom is None else args.zoom
     report = {}
     for name in args.set:
         try:
@@ -364,12 +369,15 @@ def cmd_eval(args: argparse.Namespace) -> int:
                                  spacing=args.spacing)
         except ValueError as error:
             raise CliError(str(error)) from None
-        results = evaluate_on_scenes(model, scenes, height=args.height, axis=args.axis, progress=not args.quiet)
+        results = evaluate_on_scenes(model, scenes, height=args.height, axis=args.axis, progress=not args.quiet,
+                                     zoom=zoom)
         label = name + (f" at {1000 * args.spacing:g} mm spacing" if args.spacing else "") + \
+            (f", read at zoom {args.zoom:g}" if args.zoom else "") + \
             (f" (first {len(scenes)} scenes)" if args.scenes else "")
         print(_eval_table(label, results))
         spacing = preset_config(name, args.visibility, args.spacing).voxel
-        report[name] = {method: {**result.as_dict(), "spacing": spacing} for method, result in results.items()}
+        report[name] = {method: {**result.as_dict(), "spacing": spacing, "zoom": zoom}
+                        for method, result in results.items()}
     if json_path is not None:
         _replace_file(json_path, json.dumps(report, indent=1))
     return 0
@@ -513,7 +521,7 @@ def build_parser() -> argparse.ArgumentParser:
                             "whatever its size (orientation then on caps only)")
     train.add_argument("--scale-jitter", type=_positive(float), nargs=2, default=[0.9, 1.1], metavar=("LOW", "HIGH"),
                        help="scale each training bed by a factor drawn from [LOW, HIGH] (default 0.9 1.1); "
-                            "the shipped model reads clouds zoomed by perception.detect.INFERENCE_ZOOM")
+                            f"the shipped model reads clouds zoomed by {SHIPPED_ZOOM}")
     train.add_argument("--spacing", type=_spacing, help=f"point spacing of the training beds in metres (default "
                        f"{SPACING_HELP})")
     train.add_argument("--init", help="start from these weights (fine-tuning), e.g. perception/weights/default.pt")
@@ -548,6 +556,8 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--spacing", type=_spacing,
                           help=f"the same beds at this point spacing in metres (default {SPACING_HELP}; "
                                "0.0051 gives the sets used before session 15)")
+    evaluate.add_argument("--zoom", type=_zoom, help=f"scale the network reads clouds at (default {SHIPPED_ZOOM}, the shipped model's; "
+                          "1.1 for the model shipped before session 16)")
     evaluate.add_argument("--scenes", type=_positive(int), help="only the first N scenes of each set")
     evaluate.add_argument("--quiet", action="store_true")
     evaluate.set_defaults(run=cmd_eval)

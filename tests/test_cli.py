@@ -79,8 +79,9 @@ def test_train_flags_set_the_loss_weights_and_defaults_are_the_papers():
     assert (tuned.weight_existence, tuned.weight_residual, tuned.weight_orientation, tuned.orientation_on_caps,
             tuned.cap_balance, tuned.scale_jitter) == (2.0, 50.0, 10.0, True, True, (1.0, 1.2))
     assert default.scene == paper.scene
-    from pipeline.cli import SPACING_HELP
-    assert SPACING_HELP.startswith(f"{paper.scene.voxel:g},")
+    from perception.detect import INFERENCE_ZOOM
+    from pipeline.cli import SHIPPED_ZOOM, SPACING_HELP
+    assert SPACING_HELP.startswith(f"{paper.scene.voxel:g},") and SHIPPED_ZOOM == INFERENCE_ZOOM
     spaced = train_config(parse(["train", "--out", "RUN", "--spacing", "0.004"]))
     assert spaced.scene.voxel == 0.004 and spaced.scene == type(paper.scene)(voxel=0.004)
 

@@ -7,6 +7,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 
+from perception.detect import INFERENCE_ZOOM
 from perception.synthetic.scene import SceneConfig, generate_scene
 from helpers import rrd_entity_rows, write_tiny_weights
 from pipeline.clouds import load_cloud
@@ -276,3 +277,11 @@ def test_eval_prints_the_table_and_writes_json(tmp_path, weights, monkeypatch):
     report = json.loads((tmp_path / "e.json").read_text())
     assert set(report["val50"]) == {"meanshift", "dbscan"}
     assert set(report["val50"]["meanshift"]) >= {"ap25", "ap50", "scale_err", "cosine", "angle_deg", "n_gt", "n_pred"}
+    assert report["val50"]["meanshift"]["zoom"] == INFERENCE_ZOOM
+    zoomed = run("eval", "--set", "val50", "--scenes", "1", "--model", weights, "--json", tmp_path / "z.json",
+                 "--zoom", "1.3", "--quiet")
+    assert zoomed.returncode == 0, zoomed.stderr
+    assert "read at zoom 1.3" in zoomed.stdout
+    assert json.loads((tmp_path / "z.json").read_text())["val50"]["dbscan"]["zoom"] == 1.3
+    refused = run("eval", "--zoom", "3", "--model", weights)
+    assert refused.returncode == 2 and "at most 2.0" in refused.stderr and "Traceback" not in refused.stderr
