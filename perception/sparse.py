@@ -1,8 +1,10 @@
 """Sparse 3D convolution in plain PyTorch (DESIGN.md section 9).
 
 Voxels are rows of a ``SparseTensor``: features (N, C) and integer coords (N, 4) = (batch, x, y, z)
-at the tensor's own level (stride 2^k holds floor(original / 2^k)). Neighbours are found by packing
-coords into one int64 key, sorting once and calling ``torch.searchsorted``. A kernel map holds, per
+at the tensor's own level (stride 2^k holds floor(original / 2^k)). Neighbours are found in a dense
+table of rows over the voxels' bounding box, where a voxel's index plus a constant is its neighbour's;
+boxes too large for that (stray far points) pack coords into one int64 key, sort once and call
+``torch.searchsorted``. A kernel map holds, per
 kernel offset, the (input row, output row) pairs it connects; a convolution is, per offset,
 gather -> matmul -> ``index_add_``. Maps are kept in a cache shared by all tensors derived from one
 input, so each is built once per forward pass. Downsampling is Minkowski-style: the output voxels are
@@ -98,13 +100,53 @@ def _sorted_keys(x: SparseTensor) -> tuple[torch.Tensor, torch.Tensor]:
     return entry
 
 
-def _lookup(table: SparseTensor, keys: torch.Tensor) -> torch.Tensor:
-    """Row of ``table`` holding each key, or -1 where that voxel is empty."""
-    sorted_keys, rows = _sorted_keys(table)
-    if not len(sorted_keys):
-        return torch.full_like(keys, -1)
+DENSE_TABLE_CELLS = 1 << 23
+"""Largest bounding box (cells, margin included) looked up in a dense table: 64 MB of int64 rows.
+A 0.5 m bed at 4.3 mm voxels spans about 0.5 M cells, a 2 m x 1 m one about 8 M; a fused cloud with a
+stray point metres away falls back to sorted keys. On 20 val50 beds (19.4 k voxels at the median, 2 threads, medians) the kernel
+maps of a forward pass took 29.4 ms against 54.3 ms with sorted keys, and the forward pass 336.1 against
+361.8 ms."""
+TABLE_MARGIN = 4
+"""Cells of room around the box. A lookup reaches at most its largest offset plus one cell beyond the
+table's voxels (a stride-2 map asks from doubled parents, up to one cell outside): 4 for a 7^3 kernel.
+Lookups that would reach further use the sorted keys."""
+
+
+def _dense_table(table: SparseTensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """(rows over the padded box, its lowest corner, its strides), cached per stride; None if too big."""
+    key = ("table", table.stride)
+    if key not in table.cache:
+        coords = table.coords
+        low = coords.min(0).values - TABLE_MARGIN
+        low[0] = coords[:, 0].min()
+        extent = coords.max(0).values + TABLE_MARGIN + 1 - low
+        extent[0] = coords[:, 0].max() + 1 - low[0]
+        if float(torch.prod(extent.double())) > DENSE_TABLE_CELLS:
+            table.cache[key] = None
+        else:
+            strides = torch.tensor([int(torch.prod(extent[i + 1:])) for i in range(4)], device=coords.device)
+            rows = torch.full((int(torch.prod(extent)),), -1, dtype=torch.int64, device=coords.device)
+            rows[((coords - low) * strides).sum(1)] = torch.arange(len(coords), device=coords.device)
+            table.cache[key] = (rows, low, strides)
+    return table.cache[key]
+
+
+def _lookup(table: SparseTensor, coords: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
+    """(K, M) row of ``table`` holding voxel coords[m] + offsets[k], or -1 where that voxel is empty.
+
+    For the dense table, ``coords`` (M, 4) must lie within one cell of ``table``'s voxels per axis (and
+    in its batches), as the voxels themselves and the doubled parents of a stride-2 map do.
+    """
+    if not len(table.coords):
+        return torch.full((len(offsets), len(coords)), -1, dtype=torch.int64, device=coords.device)
+    dense = _dense_table(table) if int(offsets.abs().max()) + 1 <= TABLE_MARGIN else None
+    if dense is not None:
+        rows, low, strides = dense
+        return rows[((coords - low) * strides).sum(1)[None] + (offsets * strides[1:]).sum(1)[:, None]]
+    sorted_keys, order = _sorted_keys(table)
+    keys = pack(coords)[None] + _key_deltas(offsets)[:, None]
     pos = torch.searchsorted(sorted_keys, keys).clamp_(max=len(sorted_keys) - 1)
-    return torch.where(sorted_keys[pos] == keys, rows[pos], torch.full_like(keys, -1))
+    return torch.where(sorted_keys[pos] == keys, order[pos], torch.full_like(keys, -1))
 
 
 def _pairs(found: torch.Tensor) -> KernelMap:
@@ -124,9 +166,8 @@ def submanifold_map(x: SparseTensor, kernel_size: int) -> KernelMap:
     """
     key = ("subm", x.stride, kernel_size)
     if key not in x.cache:
-        deltas = _key_deltas(kernel_offsets(kernel_size, True, x.coords.device))
-        half = len(deltas) // 2
-        kmap = _pairs(_lookup(x, pack(x.coords)[None] + deltas[:half, None]))
+        offsets = kernel_offsets(kernel_size, True, x.coords.device)
+        kmap = _pairs(_lookup(x, x.coords, offsets[:len(offsets) // 2]))
         x.cache[key] = kmap + [(None, None)] + [(o, i) for i, o in reversed(kmap)]
     return x.cache[key]
 
@@ -151,9 +192,9 @@ def downsample_map(fine: SparseTensor, kernel_size: int, coarse: torch.Tensor | 
     key = ("down", fine.stride, kernel_size)
     if key not in fine.cache:
         coarse = parent_coords(fine) if coarse is None else coarse
-        deltas = _key_deltas(kernel_offsets(kernel_size, kernel_size == 3, coarse.device))
+        offsets = kernel_offsets(kernel_size, kernel_size == 3, coarse.device)
         doubled = torch.cat([coarse[:, :1], 2 * coarse[:, 1:]], 1)
-        fine.cache[key] = (_pairs(_lookup(fine, pack(doubled)[None] + deltas[:, None])), len(coarse))
+        fine.cache[key] = (_pairs(_lookup(fine, doubled, offsets)), len(coarse))
     return fine.cache[key][0]
 
 

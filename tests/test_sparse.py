@@ -157,6 +157,28 @@ def test_maps_are_built_once_and_shared():
     assert sparse_cat(out, h).features.shape == (len(x.coords), 4)
 
 
+def test_dense_table_and_sorted_keys_give_the_same_maps(monkeypatch):
+    import perception.sparse as sparse
+
+    coords = random_coords(800, seed=8, grid=12)
+
+    def maps():
+        x = SparseTensor(torch.zeros(len(coords), 1), coords)
+        built = [submanifold_map(x, k) for k in (3, 5, 7)] + [downsample_map(x, 3)]
+        built.append(downsample_map(SparseTensor(x.features, coords), 2))
+        return built, x.cache
+
+    dense, cache = maps()
+    assert cache[("table", 1)] is not None
+    monkeypatch.setattr(sparse, "DENSE_TABLE_CELLS", 0)
+    keyed, cache = maps()
+    assert cache[("table", 1)] is None
+    for a, b in zip(dense, keyed):
+        assert len(a) == len(b)
+        for (ia, oa), (ib, ob) in zip(a, b):
+            assert (ia is None and ib is None) or (torch.equal(ia, ib) and torch.equal(oa, ob))
+
+
 def test_gradcheck_float64():
     coords = random_coords(40, seed=5, grid=4)
     x = SparseTensor(torch.zeros(len(coords), 1), coords)
