@@ -207,6 +207,8 @@ class McapRecorder:
         if pose is not None:
             from scipy.spatial.transform import Rotation
 
+            if not np.isfinite(pose).all():
+                raise ValueError(f"sensor {sensor!r}: the camera pose at {t} ns is not finite")
             x, y, z, w = Rotation.from_matrix(pose[:3, :3]).as_quat()
             self._channel("/tf", FrameTransformsChannel).log(FrameTransforms(transforms=[FrameTransform(
                 timestamp=stamp, parent_frame_id="world", child_frame_id=frame_id,
