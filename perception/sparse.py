@@ -102,48 +102,46 @@ def _sorted_keys(x: SparseTensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 DENSE_TABLE_CELLS = 1 << 23
 """Largest bounding box (cells, margin included) looked up in a dense table: 64 MB of int64 rows.
-A 0.5 m bed at 4.3 mm voxels spans about 0.5 M cells, a 2 m x 1 m one about 8 M; a fused cloud with a
-stray point metres away falls back to sorted keys. On 20 val50 beds (19.4 k voxels at the median, 2 threads, medians) the kernel
-maps of a forward pass took 29.4 ms against 54.3 ms with sorted keys, and the forward pass 336.1 against
-361.8 ms."""
+A 0.5 m bed at 4.3 mm voxels and 0.1 m of relief spans about 0.4 M cells; a fused cloud with a stray
+point metres away falls back to sorted keys. On 20 val50 beds (19.4 k voxels at the median, 2
+threads, medians, one run) the kernel maps of a forward pass took 32.8 ms against 53.4 ms with sorted
+keys, and the forward pass 356.7 against 372.9 ms."""
 TABLE_MARGIN = 4
-"""Cells of room around the box. A lookup reaches at most its largest offset plus one cell beyond the
-table's voxels (a stride-2 map asks from doubled parents, up to one cell outside): 4 for a 7^3 kernel.
-Lookups that would reach further use the sorted keys."""
+"""Cells of room around the box: a stride-2 map asks from doubled parents up to one cell outside the
+fine voxels, plus its offsets. Queries that reach outside the padded box use the sorted keys."""
 
 
-def _dense_table(table: SparseTensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
-    """(rows over the padded box, its lowest corner, its strides), cached per stride; None if too big."""
-    key = ("table", table.stride)
-    if key not in table.cache:
-        coords = table.coords
-        low = coords.min(0).values - TABLE_MARGIN
-        low[0] = coords[:, 0].min()
-        extent = coords.max(0).values + TABLE_MARGIN + 1 - low
-        extent[0] = coords[:, 0].max() + 1 - low[0]
+def _dense_table(voxels: SparseTensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """(rows over the padded box, its lowest and highest cell, its strides), cached per stride; None
+    when the box is too big."""
+    key = ("table", voxels.stride)
+    if key not in voxels.cache:
+        coords = voxels.coords
+        margin = torch.tensor([0, TABLE_MARGIN, TABLE_MARGIN, TABLE_MARGIN], device=coords.device)
+        low, high = coords.min(0).values - margin, coords.max(0).values + margin
+        extent = high + 1 - low
         if float(torch.prod(extent.double())) > DENSE_TABLE_CELLS:
-            table.cache[key] = None
+            voxels.cache[key] = None
         else:
             strides = torch.tensor([int(torch.prod(extent[i + 1:])) for i in range(4)], device=coords.device)
             rows = torch.full((int(torch.prod(extent)),), -1, dtype=torch.int64, device=coords.device)
             rows[((coords - low) * strides).sum(1)] = torch.arange(len(coords), device=coords.device)
-            table.cache[key] = (rows, low, strides)
-    return table.cache[key]
+            voxels.cache[key] = (rows, low, high, strides)
+    return voxels.cache[key]
 
 
-def _lookup(table: SparseTensor, coords: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
-    """(K, M) row of ``table`` holding voxel coords[m] + offsets[k], or -1 where that voxel is empty.
-
-    For the dense table, ``coords`` (M, 4) must lie within one cell of ``table``'s voxels per axis (and
-    in its batches), as the voxels themselves and the doubled parents of a stride-2 map do.
-    """
-    if not len(table.coords):
+def _lookup(voxels: SparseTensor, coords: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
+    """(K, M): the row of ``voxels`` holding voxel coords[m] + offsets[k], or -1 where that voxel is empty."""
+    if not len(voxels.coords) or not len(offsets) or not len(coords):
         return torch.full((len(offsets), len(coords)), -1, dtype=torch.int64, device=coords.device)
-    dense = _dense_table(table) if int(offsets.abs().max()) + 1 <= TABLE_MARGIN else None
+    dense = _dense_table(voxels)
     if dense is not None:
-        rows, low, strides = dense
-        return rows[((coords - low) * strides).sum(1)[None] + (offsets * strides[1:]).sum(1)[:, None]]
-    sorted_keys, order = _sorted_keys(table)
+        rows, low, high, strides = dense
+        reach = torch.cat([offsets.new_zeros(len(offsets), 1), offsets], 1)
+        if bool((coords.min(0).values + reach.min(0).values >= low).all()
+                and (coords.max(0).values + reach.max(0).values <= high).all()):
+            return rows[((coords - low) * strides).sum(1)[None] + (reach * strides).sum(1)[:, None]]
+    sorted_keys, order = _sorted_keys(voxels)
     keys = pack(coords)[None] + _key_deltas(offsets)[:, None]
     pos = torch.searchsorted(sorted_keys, keys).clamp_(max=len(sorted_keys) - 1)
     return torch.where(sorted_keys[pos] == keys, order[pos], torch.full_like(keys, -1))

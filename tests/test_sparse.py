@@ -161,22 +161,33 @@ def test_dense_table_and_sorted_keys_give_the_same_maps(monkeypatch):
     import perception.sparse as sparse
 
     coords = random_coords(800, seed=8, grid=12)
+    parents = torch.unique(torch.cat([coords[:, :1], coords[:, 1:] // 2], 1), dim=0)
+    shifted = [parents + torch.tensor([0, 0, 0, dz]) for dz in (-5, 5)]
 
     def maps():
         x = SparseTensor(torch.zeros(len(coords), 1), coords)
-        built = [submanifold_map(x, k) for k in (3, 5, 7)] + [downsample_map(x, 3)]
+        built = [submanifold_map(x, k) for k in (1, 3, 5, 7, 9)] + [downsample_map(x, 3)]
         built.append(downsample_map(SparseTensor(x.features, coords), 2))
-        return built, x.cache
+        return built
 
-    dense, cache = maps()
-    assert cache[("table", 1)] is not None
+    def foreign_parent_maps():
+        return [downsample_map(SparseTensor(torch.zeros(len(coords), 1), coords), 3, coarse) for coarse in shifted]
+
+    def no_sorted_keys(x):
+        raise AssertionError("a lookup inside the box used the sorted keys")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(sparse, "_sorted_keys", no_sorted_keys)
+        dense = maps()
+    # parents moved off the fine voxels reach outside the padded box: those lookups must not alias
+    dense += foreign_parent_maps()
     monkeypatch.setattr(sparse, "DENSE_TABLE_CELLS", 0)
-    keyed, cache = maps()
-    assert cache[("table", 1)] is None
-    for a, b in zip(dense, keyed):
+    keyed = maps() + foreign_parent_maps()
+    for a, b in zip(dense, keyed, strict=True):
         assert len(a) == len(b)
         for (ia, oa), (ib, ob) in zip(a, b):
             assert (ia is None and ib is None) or (torch.equal(ia, ib) and torch.equal(oa, ob))
+    assert sum(len(i) for i, _ in dense[-1]) < sum(len(i) for i, _ in dense[5])  # the unshifted 3^3 map
 
 
 def test_gradcheck_float64():
