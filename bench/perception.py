@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from sklearn.cluster import MeanShift
 
-from perception.detect import DEFAULT_WEIGHTS, INFERENCE_ZOOM, at_training_density, network_input, network_output
+from perception.detect import DEFAULT_WEIGHTS, at_training_density, network_input, network_output
 from perception.instances import ClusterConfig, cluster
 from perception.pose import fit_caps
 from perception.synthetic.dataset import load_preset
@@ -35,12 +35,12 @@ def main() -> None:
     parser.add_argument("--model", type=Path, default=DEFAULT_WEIGHTS)
     parser.add_argument("--scenes", type=int, default=20)
     parser.add_argument("--visibility", default="hpr")
-    parser.add_argument("--zoom", type=float, default=INFERENCE_ZOOM,
-                        help=f"scale the network reads clouds at (default {INFERENCE_ZOOM}, the shipped one)")
+    parser.add_argument("--zoom", type=float, help="scale the network reads clouds at (default: the model's own)")
     parser.add_argument("--baseline-scenes", type=int, default=5, help="scenes for the slow baseline clustering")
     args = parser.parse_args()
     torch.set_num_threads(2)
     model, meta = load_weights(args.model)
+    args.zoom = model.inference_zoom if args.zoom is None else args.zoom
     voxel = model.config.voxel
     scenes = load_preset("val50", args.visibility, progress=False, limit=args.scenes)
     rows = {k: [] for k in ("voxels", "caps", "voxelise", "network", "instances", "pose", "total", "baseline",

@@ -19,13 +19,14 @@ from perception.sparse import COORD_MAX, SparseTensor, voxelize
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "default.pt"
 INFERENCE_ZOOM = 1.05
-"""The network reads a cloud scaled up by this factor, i.e. at its voxel / 1.05: a small cap, the kind
-it misses or tilts wrongly, then spans more voxels, and the factor stays inside training's scale
-jitter. Clustering stays at the model's voxel in the cloud's own metres: caps keep their real size.
-Chosen on val50 for the shipped model (3 mm spacing, MeanShift), zoom 1 / 1.025 / 1.05 / 1.075 / 1.1
-/ 1.15 / 1.2: AP@25 99.30 / 99.42 / 99.64 / 99.49 / 99.47 / 99.44 / 98.02 %, cosine 0.9961 / 0.9968 /
-0.9971 / 0.9969 / 0.9963 / 0.9967 / 0.9971. The previous model (5.1 mm beds) was read at 1.1
-(``mushroom-pose eval --zoom 1.1``; model card)."""
+"""The zoom new models are read at (``MushroomNet.inference_zoom``, which weights record). The network
+reads a cloud scaled up by this factor, i.e. at its voxel / 1.05: a small cap, the kind it misses or
+tilts wrongly, then spans more voxels, and the factor stays inside training's scale jitter.
+Clustering stays at the model's voxel in the cloud's own metres: caps keep their real size. Chosen on
+val50 for the shipped model (3 mm spacing, MeanShift), zoom 1 / 1.025 / 1.05 / 1.075 / 1.1 / 1.15 /
+1.2: AP@25 99.30 / 99.42 / 99.64 / 99.49 / 99.47 / 99.44 / 98.02 %, cosine 0.9961 / 0.9968 / 0.9971 /
+0.9969 / 0.9963 / 0.9967 / 0.9971. Older weights record no zoom and are read at 1.1, as they were
+shipped (``perception.train.UNRECORDED_ZOOM``; model card)."""
 
 
 @dataclass(frozen=True)
@@ -74,7 +75,7 @@ def at_training_density(model: MushroomNet, points: np.ndarray) -> np.ndarray:
 
 @torch.no_grad()
 def predict(model: MushroomNet, points: np.ndarray, thin: bool = True,
-            zoom: float = INFERENCE_ZOOM) -> VoxelPrediction:
+            zoom: float | None = None) -> VoxelPrediction:
     """The network's encoding for a cloud in the bed frame; ``point_to_voxel`` covers every input point.
 
     The network was trained on clouds with one point per ``model.point_spacing`` (the synthetic
@@ -83,9 +84,10 @@ def predict(model: MushroomNet, points: np.ndarray, thin: bool = True,
     AP@25 0.90 to 0.54 on virtual 4-view beds. So with ``thin``, such a cloud is first thinned
     (``at_training_density``), and points whose voxel lost its points take the prediction of the
     nearest kept voxel. Clouds at training density are used as they are (thinning them cost 3 points
-    of AP@25 on the 5.1 mm val50). The network then reads the cloud scaled by ``zoom``; what it
-    returns is in the cloud's own metres again.
+    of AP@25 on the 5.1 mm val50). The network then reads the cloud scaled by ``zoom`` (default: the
+    model's own); what it returns is in the cloud's own metres again.
     """
+    zoom = model.inference_zoom if zoom is None else zoom
     points = np.asarray(points, np.float64)
     if len(points) == 0:
         empty = np.zeros((0, 3))
@@ -184,9 +186,9 @@ def log_rerun(rec, result: SceneResult, points: np.ndarray, entity: str = "world
 
 
 def evaluate_on_scenes(model: MushroomNet, scenes, methods=("meanshift", "dbscan"), height: str = "free",
-                       axis: str = "surface", progress: bool = False, zoom: float = INFERENCE_ZOOM) -> dict:
+                       axis: str = "surface", progress: bool = False, zoom: float | None = None) -> dict:
     """The paper's metrics of ``model`` on synthetic scenes, per clustering method (one network pass
-    per scene, read at ``zoom``)."""
+    per scene, read at ``zoom``, by default the model's own)."""
     from tqdm import tqdm
 
     from perception.evaluate import SceneCaps, evaluate

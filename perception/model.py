@@ -65,7 +65,7 @@ PRESETS = {
 # slim-no with the coarser levels (stride 2 to 8) wider and the full-resolution ones unchanged: the
 # training step costs about 1.2 times as much, the forward pass 1.05 times (model card: "A wider network")
 PRESETS["wide-no"] = replace(PRESETS["slim-no"], channels=(32, 64, 128, 192), up_channels=(48, 48, 96, 128))
-# slim-no with a 5^3 first convolution: at the 4.1 mm voxels the network reads, points 5.1 mm apart
+# slim-no with a 5^3 first convolution: at the 4.1 mm voxels the previous model read, points 5.1 mm apart
 # leave a voxel on the cap surface about 5 of its 26 neighbours, and a 5^3 kernel reaches about 16
 # (model card: "A wider first convolution")
 PRESETS["slim-no-k5"] = replace(PRESETS["slim-no"], first_kernel=5)
@@ -125,11 +125,14 @@ def _up(in_ch: int, out_ch: int) -> nn.ModuleDict:
 class MushroomNet(nn.Module):
     """Sparse U-Net backbone + per-voxel head; geometry only (``voxel_features``), never colour."""
 
-    def __init__(self, config: NetworkConfig = NetworkConfig(), point_spacing: float | None = None):
+    def __init__(self, config: NetworkConfig = NetworkConfig(), point_spacing: float | None = None,
+                 inference_zoom: float = 1.0):
         super().__init__()
         self.config = config
         self.point_spacing = point_spacing
         """Point spacing of the beds it was trained on: inference thins denser clouds to it."""
+        self.inference_zoom = inference_zoom
+        """Scale at which inference reads clouds (``perception.detect.predict``), chosen per model."""
         c1, c2, c3, c4 = config.channels
         u1, u2, u3, u4 = config.up_channels
         self.relu = SparseReLU()

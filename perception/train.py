@@ -246,8 +246,8 @@ def _atomic_save(payload: dict, path: Path) -> None:
 
 
 def validate(model: MushroomNet, scenes) -> dict[str, float]:
-    """The metrics of ``model`` read as shipped (perception.detect, zoom included); runs validated
-    before the zoom existed were read at zoom 1."""
+    """The metrics of ``model`` read as it will be (perception.detect, at its own zoom); runs validated
+    before the zoom existed were read at zoom 1, and until session 16 at 1.1."""
     from perception.detect import evaluate_on_scenes
 
     metrics = evaluate_on_scenes(model, scenes, methods=("meanshift",))["meanshift"].as_dict()
@@ -267,7 +267,9 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
     run_dir.mkdir(parents=True, exist_ok=True)
     network_config = NETWORK_PRESETS[config.network]
     torch.manual_seed(config.seed)
-    model = MushroomNet(network_config, point_spacing=config.scene.voxel).to(device)
+    from perception.detect import INFERENCE_ZOOM
+
+    model = MushroomNet(network_config, point_spacing=config.scene.voxel, inference_zoom=INFERENCE_ZOOM).to(device)
     init = None
     if config.init_weights and not resume:
         initial, base = load_weights(Path(config.init_weights), device)
@@ -332,7 +334,8 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
         _atomic_save({"model": model.state_dict(), "optimizer": optimizer.state_dict(),
                       "scheduler": scheduler.state_dict(), "torch_rng": torch.get_rng_state(),
                       "iteration": iteration, "elapsed_s": elapsed_before + time.perf_counter() - session_start,
-                      "train_config": config.to_dict(), "network": network_config.to_dict(), "init": init},
+                      "train_config": config.to_dict(), "network": network_config.to_dict(), "init": init,
+                      "inference_zoom": model.inference_zoom},
                      checkpoint_path)
         saved_at = iteration
 
@@ -421,10 +424,15 @@ def _provenance(path: Path, meta: dict) -> dict:
             "train_config": meta.get("train_config"), "init": meta.get("init")}
 
 
+UNRECORDED_ZOOM = 1.1
+"""Weights saved before session 16 record no inference zoom; the models among them that were shipped
+were read at 1.1."""
+
+
 def save_weights(model: MushroomNet, path: Path, **meta) -> None:
     """The shipped form of a model: its weights, its network config and how it was made."""
-    _atomic_save({"model": model.state_dict(), "network": model.config.to_dict(),
-                  "point_spacing": model.point_spacing, **meta}, Path(path))
+    _atomic_save({**meta, "model": model.state_dict(), "network": model.config.to_dict(),
+                  "point_spacing": model.point_spacing, "inference_zoom": model.inference_zoom}, Path(path))
 
 
 def load_weights(path: Path, device: str = "cpu") -> tuple[MushroomNet, dict]:
@@ -433,7 +441,8 @@ def load_weights(path: Path, device: str = "cpu") -> tuple[MushroomNet, dict]:
         state = torch.load(path, map_location=device, weights_only=False)
         network = NetworkConfig.from_dict(state["network"])
         spacing = state.get("point_spacing") or ((state.get("train_config") or {}).get("scene") or {}).get("voxel")
-        model = MushroomNet(network, point_spacing=spacing).to(device)
+        model = MushroomNet(network, point_spacing=spacing,
+                            inference_zoom=state.get("inference_zoom", UNRECORDED_ZOOM)).to(device)
         model.load_state_dict(state["model"])
     except FileNotFoundError:
         raise

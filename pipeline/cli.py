@@ -356,12 +356,12 @@ def _eval_table(name: str, results: dict) -> str:
 def cmd_eval(args: argparse.Namespace) -> int:
     import json
 
-    from perception.detect import INFERENCE_ZOOM, evaluate_on_scenes
+    from perception.detect import evaluate_on_scenes
     from perception.synthetic.dataset import load_preset, preset_config
 
     json_path = _writable_file(args.json, inputs=(_model_path(args.model),))
     model, meta = _load_model(args.model)
-    zoom = INFERENCE_ZOOM if args.zoom is None else args.zoom
+    zoom = model.inference_zoom if args.zoom is None else args.zoom
     report = {}
     for name in args.set:
         try:
@@ -372,7 +372,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         results = evaluate_on_scenes(model, scenes, height=args.height, axis=args.axis, progress=not args.quiet,
                                      zoom=zoom)
         label = name + (f" at {1000 * args.spacing:g} mm spacing" if args.spacing else "") + \
-            (f", read at zoom {args.zoom:g}" if args.zoom else "") + \
+            f", read at zoom {zoom:g}" + \
             (f" (first {len(scenes)} scenes)" if args.scenes else "")
         print(_eval_table(label, results))
         spacing = preset_config(name, args.visibility, args.spacing).voxel
@@ -556,8 +556,8 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--spacing", type=_spacing,
                           help=f"the same beds at this point spacing in metres (default {SPACING_HELP}; "
                                "0.0051 gives the sets used before session 15)")
-    evaluate.add_argument("--zoom", type=_zoom, help=f"scale the network reads clouds at (default {SHIPPED_ZOOM}, the shipped model's; "
-                          "1.1 for the model shipped before session 16)")
+    evaluate.add_argument("--zoom", type=_zoom, help="scale the network reads clouds at (default: the one the weights record, "
+                          f"{SHIPPED_ZOOM} for the shipped model, 1.1 for weights saved before session 16)")
     evaluate.add_argument("--scenes", type=_positive(int), help="only the first N scenes of each set")
     evaluate.add_argument("--quiet", action="store_true")
     evaluate.set_defaults(run=cmd_eval)

@@ -79,9 +79,11 @@ def test_train_flags_set_the_loss_weights_and_defaults_are_the_papers():
     assert (tuned.weight_existence, tuned.weight_residual, tuned.weight_orientation, tuned.orientation_on_caps,
             tuned.cap_balance, tuned.scale_jitter) == (2.0, 50.0, 10.0, True, True, (1.0, 1.2))
     assert default.scene == paper.scene
-    from perception.detect import INFERENCE_ZOOM
+    from perception.detect import DEFAULT_WEIGHTS, INFERENCE_ZOOM
+    from perception.train import load_weights
     from pipeline.cli import SHIPPED_ZOOM, SPACING_HELP
-    assert SPACING_HELP.startswith(f"{paper.scene.voxel:g},") and SHIPPED_ZOOM == INFERENCE_ZOOM
+    assert SPACING_HELP.startswith(f"{paper.scene.voxel:g},")
+    assert SHIPPED_ZOOM == INFERENCE_ZOOM == load_weights(DEFAULT_WEIGHTS)[0].inference_zoom
     spaced = train_config(parse(["train", "--out", "RUN", "--spacing", "0.004"]))
     assert spaced.scene.voxel == 0.004 and spaced.scene == type(paper.scene)(voxel=0.004)
 

@@ -7,7 +7,6 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from perception.detect import INFERENCE_ZOOM
 from perception.synthetic.scene import SceneConfig, generate_scene
 from helpers import rrd_entity_rows, write_tiny_weights
 from pipeline.clouds import load_cloud
@@ -277,7 +276,7 @@ def test_eval_prints_the_table_and_writes_json(tmp_path, weights, monkeypatch):
     report = json.loads((tmp_path / "e.json").read_text())
     assert set(report["val50"]) == {"meanshift", "dbscan"}
     assert set(report["val50"]["meanshift"]) >= {"ap25", "ap50", "scale_err", "cosine", "angle_deg", "n_gt", "n_pred"}
-    assert report["val50"]["meanshift"]["zoom"] == INFERENCE_ZOOM
+    assert report["val50"]["meanshift"]["zoom"] == 1.05 and "read at zoom 1.05" in result.stdout  # as the weights say
     zoomed = run("eval", "--set", "val50", "--scenes", "1", "--model", weights, "--json", tmp_path / "z.json",
                  "--zoom", "1.3", "--quiet")
     assert zoomed.returncode == 0, zoomed.stderr

@@ -79,3 +79,20 @@ def test_a_model_thins_clouds_to_the_spacing_it_was_trained_at(tmp_path):
         assert thinned == (spacing == 0.0051)
         expected = predict(model, points[kept] if thinned else points, thin=False)
         np.testing.assert_array_equal(predict(model, points).centroids, expected.centroids)
+
+
+def test_a_model_is_read_at_the_zoom_its_weights_record_and_older_weights_at_1_1(tmp_path):
+    from perception.train import UNRECORDED_ZOOM, load_weights, save_weights
+
+    torch.manual_seed(0)
+    points = generate_scene(3, SceneConfig(mushrooms=(5, 5))).points
+    path = tmp_path / "zoomed.pt"
+    save_weights(MushroomNet(TINY, point_spacing=SPACING, inference_zoom=1.3), path)
+    model, _ = load_weights(path)
+    assert model.inference_zoom == 1.3
+    np.testing.assert_array_equal(predict(model, points).centroids, predict(model, points, zoom=1.3).centroids)
+    assert len(predict(model, points).centroids) > len(predict(model, points, zoom=1.0).centroids)
+    state = torch.load(path, weights_only=False)
+    del state["inference_zoom"]
+    torch.save(state, tmp_path / "older.pt")
+    assert UNRECORDED_ZOOM == 1.1 and load_weights(tmp_path / "older.pt")[0].inference_zoom == 1.1
