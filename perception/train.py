@@ -267,9 +267,7 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
     run_dir.mkdir(parents=True, exist_ok=True)
     network_config = NETWORK_PRESETS[config.network]
     torch.manual_seed(config.seed)
-    from perception.detect import INFERENCE_ZOOM
-
-    model = MushroomNet(network_config, point_spacing=config.scene.voxel, inference_zoom=INFERENCE_ZOOM).to(device)
+    model = MushroomNet(network_config, point_spacing=config.scene.voxel).to(device)
     init = None
     if config.init_weights and not resume:
         initial, base = load_weights(Path(config.init_weights), device)
@@ -290,6 +288,7 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
             raise ValueError(f"{checkpoint_path} was made with a different configuration ({differ}); "
                              "resume with the same flags or use a new run folder")
         model.load_state_dict(state["model"])
+        model.inference_zoom = state.get("inference_zoom", UNRECORDED_ZOOM)
         optimizer.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["scheduler"])
         torch.set_rng_state(state["torch_rng"])

@@ -134,7 +134,7 @@ _spacing = _at_least(_at_most(_positive(float), 0.02, " metres (0.003 is 3 mm)")
 SPACING_HELP = "0.003, the generator's: every 4.5 mm voxel a surface crosses holds a point"
 """The parser imports no numpy (Ctrl-C while libraries load), so SceneConfig's default is named here."""
 SHIPPED_ZOOM = 1.05
-"""perception.detect.INFERENCE_ZOOM, named here for the same reason."""
+"""perception.model.INFERENCE_ZOOM, named here for the same reason."""
 _zoom = _at_least(_at_most(_positive(float), 2.0, " (the network would read caps twice their size)"), 0.5,
                   " (the network would read caps half their size)")
 

@@ -79,7 +79,8 @@ def test_train_flags_set_the_loss_weights_and_defaults_are_the_papers():
     assert (tuned.weight_existence, tuned.weight_residual, tuned.weight_orientation, tuned.orientation_on_caps,
             tuned.cap_balance, tuned.scale_jitter) == (2.0, 50.0, 10.0, True, True, (1.0, 1.2))
     assert default.scene == paper.scene
-    from perception.detect import DEFAULT_WEIGHTS, INFERENCE_ZOOM
+    from perception.detect import DEFAULT_WEIGHTS
+    from perception.model import INFERENCE_ZOOM
     from perception.train import load_weights
     from pipeline.cli import SHIPPED_ZOOM, SPACING_HELP
     assert SPACING_HELP.startswith(f"{paper.scene.voxel:g},")

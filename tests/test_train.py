@@ -152,8 +152,12 @@ def test_resume_continues_exactly(tmp_path, tiny_network):
                          scene=SMALL_SCENES, queue_size=2)
     straight = train(config, tmp_path / "straight", progress=False, rerun=False)
     assert train(config, tmp_path / "resumed", progress=False, rerun=False, stop_at=2) is None
-    assert torch.load(tmp_path / "resumed" / "checkpoint.pt", weights_only=False)["iteration"] == 2
+    checkpoint = torch.load(tmp_path / "resumed" / "checkpoint.pt", weights_only=False)
+    assert checkpoint["iteration"] == 2
+    # the run keeps the zoom it started with, whatever the default is when it resumes
+    torch.save({**checkpoint, "inference_zoom": 1.2}, tmp_path / "resumed" / "checkpoint.pt")
     resumed = train(config, tmp_path / "resumed", resume=True, progress=False, rerun=False)
+    assert load_weights(resumed)[0].inference_zoom == 1.2
     model_a, meta = load_weights(straight)
     model_b, _ = load_weights(resumed)
     for a, b in zip(model_a.state_dict().values(), model_b.state_dict().values()):
