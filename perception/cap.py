@@ -64,9 +64,11 @@ def rotation_from_axis(axis: np.ndarray) -> np.ndarray:
     upright = c > 1e-12
     inv_c = 1.0 / np.where(upright, c, 1.0)
     sin_y, cos_y = np.where(upright, x * inv_c, 0.0), np.where(upright, z * inv_c, 1.0)
-    zero = np.zeros_like(c)
-    first, second = np.stack([cos_y, zero, -sin_y], -1), np.stack([-sin_y * y, c, -cos_y * y], -1)
-    return np.stack([first, second, u], -1)
+    rotation = np.empty(u.shape + (3,))
+    rotation[..., 0, 0], rotation[..., 1, 0], rotation[..., 2, 0] = cos_y, 0.0, -sin_y
+    rotation[..., 0, 1], rotation[..., 1, 1], rotation[..., 2, 1] = -sin_y * y, c, -cos_y * y
+    rotation[..., 2] = u
+    return rotation
 
 
 def tilt_deg(axis: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:

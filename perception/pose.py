@@ -34,9 +34,11 @@ HEIGHT_MODES = ("free", "fixed")
 AXIS_MODES = ("surface", "encoding")
 SURFACE_ITERATIONS = 6
 """Shipped model, val50, mean angle with ``STEP_LIMITS``: 3.74 degrees after 4 iterations, 3.61 after
-5, 3.55 after 6. Each costs about 0.3 ms, 8 % of the pose step on 46 caps; 8 iterations with the
-earlier, three times tighter limits gave 3.59. The figures of the next three settings were measured
-with those (session 9)."""
+5, 3.55 after 6; 8 iterations with the earlier, three times tighter limits gave 3.59. The figures of
+the next three settings were measured with those (session 9). The model shipped in session 16: val50
+cosine 0.99684, 0.99694, 0.99705 and 0.99710 after 4, 5, 6 and 8 iterations, and no better after 12,
+20 or 30 (test50: 0.99674, 0.99684, 0.99685, 0.99687). Each iteration costs 0.4-0.5 ms of the pose
+step on 46 caps."""
 SURFACE_L1_SCALE = 1e-4
 """Metres. Surface residuals above it are weighted as in an L1 fit, so that a cluster's stray voxels
 (rim, gills, a neighbour's edge) do not pull the axis. Val50 mean angle with this at 2, 0.5, 0.1 and
@@ -71,11 +73,42 @@ class CapFit:
     counts: np.ndarray
 
 
-def _sum_by_label(values: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
-    """Per-label sums of ``values`` (N, ...) -> (k, ...), with one bincount per component."""
-    flat = values.reshape(len(values), -1)
-    sums = np.stack([np.bincount(labels, flat[:, j], minlength=k) for j in range(flat.shape[1])], 1)
-    return sums.reshape((k,) + values.shape[1:])
+class _Clusters:
+    """The labelled points sorted by label (stable: each cluster keeps its order), per-point values
+    component-major: numpy's small-axis operations on (n, 3) rows cost several times more than the
+    same operations on (3, n) rows. Per-label sums are one ``np.add.reduceat`` over stacked rows."""
+
+    def __init__(self, labels: np.ndarray):
+        index = np.flatnonzero(labels >= 0)
+        small = labels[index].astype(np.int16) if len(index) and labels.max() < 2**15 else labels[index]
+        # a stable sort of 16-bit keys is numpy's radix sort, six times faster than of int64
+        self.index = index[np.argsort(small, kind="stable")]
+        self.lab = labels[self.index]
+        self.k = int(self.lab[-1]) + 1 if len(self.lab) else 0
+        self.counts = np.bincount(self.lab, minlength=self.k)
+        self.starts = np.cumsum(self.counts) - self.counts
+        self.present = self.counts > 0
+
+    def take(self, values: np.ndarray) -> np.ndarray:
+        """``values`` (n,) or (n, c) of the labelled points, as float64 (m,) or (c, m) in cluster order."""
+        return values.take(self.index, axis=0).T.astype(np.float64, order="C")
+
+    def spread(self, per_label: np.ndarray) -> np.ndarray:
+        """Per-label rows (k, c) -> (c, m): each labelled point's."""
+        return per_label.T.take(self.lab, axis=1)
+
+    def sums(self, rows: np.ndarray) -> np.ndarray:
+        """Per-label sums of ``rows`` (c, m) -> (k, c); 0 for absent labels."""
+        sums = np.zeros((self.k, len(rows)))
+        sums[self.present] = np.add.reduceat(rows, self.starts[self.present], axis=1).T
+        return sums
+
+
+_PAIRS = tuple(index[:-1] for index in np.triu_indices(4))
+"""Pairwise products of the rows [d_x, d_y, d_z, y] but (y, y): their sums, the rows' own and the count
+make the normal equations of [d, 1] (lambda, b) = y, whose unknowns and right side ``_SYSTEM_INDEX``
+places."""
+_SYSTEM_INDEX = np.array([0, 1, 2, 4])
 
 
 def fit_caps(points: np.ndarray, predicted_centers: np.ndarray, orientation: np.ndarray,
@@ -88,56 +121,59 @@ def fit_caps(points: np.ndarray, predicted_centers: np.ndarray, orientation: np.
         raise ValueError(f"unknown height mode {height!r}; choose one of {HEIGHT_MODES}")
     if axis not in AXIS_MODES:
         raise ValueError(f"unknown axis mode {axis!r}; choose one of {AXIS_MODES}")
-    mask = labels >= 0
-    k = int(labels.max()) + 1 if mask.any() else 0
+    clusters = _Clusters(np.asarray(labels))
+    k, counts = clusters.k, clusters.counts
     if k == 0:
         return CapFit(np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64))
-    p, y, lab = points[mask].astype(np.float64), orientation[mask].astype(np.float64), labels[mask]
-    counts = np.bincount(lab, minlength=k)
-    centers = _sum_by_label(predicted_centers[mask].astype(np.float64), lab, k) / counts[:, None]
-    d = p - centers[lab]
-    design = np.concatenate([d, np.ones((len(d), 1))], 1)
-    normal = _sum_by_label(design[:, :, None] * design[:, None, :], lab, k)
-    rhs = _sum_by_label(design * y[:, None], lab, k)
-    ridge = 1e-12 * np.eye(4)
-    solution = np.linalg.solve(normal + ridge, rhs[:, :, None])[:, :, 0]
+    p, y = clusters.take(points), clusters.take(orientation)
+    sums = clusters.sums(np.vstack([clusters.take(predicted_centers), clusters.take(existence)]))
+    centers, scores = sums[:, :3] / counts[:, None], sums[:, 3] / counts
+    d = p - clusters.spread(centers)
+    rows = np.vstack([d, y])
+    moments = clusters.sums(np.vstack([rows[_PAIRS[0]] * rows[_PAIRS[1]], rows]))
+    system = np.zeros((k, 5, 5))
+    row, column = _SYSTEM_INDEX[_PAIRS[0]], _SYSTEM_INDEX[_PAIRS[1]]
+    system[:, row, column] = system[:, column, row] = moments[:, :len(row)]
+    system[:, 3, :3] = system[:, :3, 3] = moments[:, -4:-1]
+    system[:, 3, 3], system[:, 3, 4] = counts, moments[:, -1]
+    solution = np.linalg.solve(system[:, :4, :4] + 1e-12 * np.eye(4), system[:, :4, 4:])[:, :, 0]
     lam, intercept = solution[:, :3], solution[:, 3]
-    norm = np.linalg.norm(lam, axis=1)
+    norm = np.sqrt(np.einsum("ij,ij->i", lam, lam))
     posed = norm > 1e-12
     cap_axis = np.where(posed[:, None], lam / np.maximum(norm, 1e-12)[:, None], [0.0, 0.0, 1.0])
     # clipped: a cluster flat along its axis leaves the intercept poorly determined
-    rms_radius = np.sqrt(np.bincount(lab, (d**2).sum(1), minlength=k) / counts)
+    rms_radius = np.sqrt(np.trace(system[:, :3, :3], axis1=1, axis2=2) / counts)
     along_axis = np.clip(np.where(posed, intercept / np.maximum(norm, 1e-12), 0.0), -rms_radius, rms_radius)
     centers -= along_axis[:, None] * cap_axis
-    d = p - centers[lab]
-    rotations, scales = _orient_and_size(d, lab, counts, cap_axis, height)
+    d = p - clusters.spread(centers)
+    rotations, scales = _orient_and_size(d, clusters, cap_axis, height)
     if axis == "surface":
-        cap_axis = refine_axes(p, y, lab, centers, rotations, scales)
-        rotations, scales = _orient_and_size(d, lab, counts, cap_axis, height)
-    scores = np.bincount(lab, existence[mask], minlength=k) / counts
+        cap_axis = refine_axes(p, y, clusters.lab, centers, rotations, scales)
+        rotations, scales = _orient_and_size(d, clusters, cap_axis, height)
     return CapFit(centers, rotations, scales, scores, counts)
 
 
-def _orient_and_size(d: np.ndarray, lab: np.ndarray, counts: np.ndarray, cap_axis: np.ndarray,
+def _orient_and_size(d: np.ndarray, clusters: _Clusters, cap_axis: np.ndarray,
                      height: str) -> tuple[np.ndarray, np.ndarray]:
-    """Spin-free rotations (axis turned up) and (s, s, s_z) for offsets ``d`` from the cap centres;
-    ``counts``: points per label."""
-    k = len(counts)
+    """Spin-free rotations (axis turned up) and (s, s, s_z) for offsets ``d`` (3, m) from the cap
+    centres."""
     cap_axis = cap_axis * np.where(cap_axis[:, 2:3] < 0, -1.0, 1.0)
     rotations = rotation_from_axis(cap_axis)
-    axial = (d * cap_axis[lab]).sum(1)
-    axial2 = axial**2
-    radial2 = np.maximum((d**2).sum(1) - axial2, 0.0)
-    s = np.bincount(lab, np.sqrt(radial2 + axial2 / CAP_HEIGHT_RATIO**2), minlength=k) / counts
+    axial2 = np.einsum("ij,ij->j", d, clusters.spread(cap_axis)) ** 2
+    radial2 = np.maximum(np.einsum("ij,ij->j", d, d) - axial2, 0.0)
+    sums = clusters.sums(np.vstack([np.sqrt(radial2 + axial2 / CAP_HEIGHT_RATIO**2), radial2 * radial2,
+                                    radial2 * axial2, axial2 * axial2, radial2, axial2]))
+    s = sums[:, 0] / clusters.counts
     s_z = CAP_HEIGHT_RATIO * s
     if height == "free":
-        s, s_z = _fit_two_axes(radial2, axial2, lab, k, fallback=s)
+        s, s_z = _fit_two_axes(*sums[:, 1:].T, fallback=s)
     return rotations, np.stack([s, s, s_z], 1)
 
 
 def refine_axes(points: np.ndarray, orientation: np.ndarray, lab: np.ndarray, centers: np.ndarray,
                 rotations: np.ndarray, scales: np.ndarray, iterations: int = SURFACE_ITERATIONS) -> np.ndarray:
-    """Cap axes (K, 3) from an ellipsoid fitted to each cluster's points, all clusters at once.
+    """Cap axes (K, 3) from an ellipsoid fitted to each cluster's points (3, n), all clusters at once;
+    the points come in cluster order (``lab`` sorted).
 
     Gauss-Newton from the encoding's pose over centre, rotation and three semi-axes: the two base
     semi-axes may differ, as on real caps (and the synthetic ones, per-axis factors 0.8-1.2); a surface
@@ -151,59 +187,67 @@ def refine_axes(points: np.ndarray, orientation: np.ndarray, lab: np.ndarray, ce
     k = len(centers)
     counts = np.bincount(lab, minlength=k)
     # clusters as zero-padded rows, (K, component, width): every step is a batched array operation
-    # whose innermost loop runs along a cluster's points
-    slot = np.empty(len(lab), np.int64)
-    first_of_label = np.cumsum(counts) - counts
-    slot[np.argsort(lab, kind="stable")] = np.arange(len(lab)) - np.repeat(first_of_label, counts)
-    if SURFACE_MAX_POINTS:
-        stride = np.maximum(counts / SURFACE_MAX_POINTS, 1.0)[lab]
-        spread = np.floor(slot / stride)
-        chosen = (slot == 0) | (spread != np.floor((slot - 1) / stride))
-        points, orientation, lab = points[chosen], orientation[chosen], lab[chosen]
-        slot = spread[chosen].astype(np.int64)
-    width = int(slot.max()) + 1
+    # whose innermost loop runs along a cluster's points. A larger cluster gives an even subset: its
+    # points ceil(j n / m), j < m.
+    kept = np.minimum(counts, SURFACE_MAX_POINTS) if SURFACE_MAX_POINTS else counts
+    subset_lab = np.repeat(np.arange(k), kept)
+    slot = np.arange(len(subset_lab)) - np.repeat(np.cumsum(kept) - kept, kept)
+    n, m = counts[subset_lab], kept[subset_lab]
+    chosen = np.repeat(np.cumsum(counts) - counts, kept) + (slot * n + m - 1) // m
+    points, orientation, lab = points[:, chosen], orientation[chosen], subset_lab
+    width = int(kept.max())
+    cell = lab * width + slot
     real = np.zeros((k, width))
-    real[lab, slot] = 1.0
-    padded_points = np.zeros((k, 3, width))
-    padded_points[lab, :, slot] = points
+    real.reshape(-1)[cell] = 1.0
     values = np.zeros((k, width))
-    values[lab, slot] = orientation
+    values.reshape(-1)[cell] = orientation
+    padded_points = np.zeros((k, 3, width))
+    padded_points.reshape(-1)[cell + 2 * width * lab + width * np.arange(3)[:, None]] = points
     center, rotation = centers.copy(), rotations.copy()
     log_axes = np.log(np.maximum(scales, 1e-6))
-    rows = np.zeros((k, 9, 2 * width))
+    # the Jacobian's nine rows and, last, the residuals: one batched product gives J J^T and J r
+    rows = np.zeros((k, 10, 2 * width))
     surface_rows, encoding_rows = rows[:, :, :width], rows[:, :, width:]
-    residuals = np.zeros((k, 2 * width, 1))
-    diagonal = np.arange(9)
+    encoding_weight = SURFACE_ENCODING_WEIGHT * real
+    weighted_values = encoding_weight * values
     for _ in range(iterations):
-        semi = np.exp(log_axes)[:, :, None]
+        semi = np.exp(log_axes)
+        inverse_semi = (1.0 / semi)[:, :, None]
         q = rotation.transpose(0, 2, 1) @ (padded_points - center[:, :, None])
-        rho = np.maximum(np.sqrt(((q / semi) ** 2).sum(1)), 1e-9)
-        mean_radius = 0.5 * (semi[:, 0] + semi[:, 1])
+        q_scaled = q * inverse_semi
+        rho = np.sqrt(np.einsum("kiw,kiw->kw", q_scaled, q_scaled))
+        np.maximum(rho, 1e-9, out=rho)
+        mean_radius = 0.5 * (semi[:, :1] + semi[:, 1:2])
         surface = (rho - 1.0) * mean_radius
-        d_rho = q / semi**2 / rho[:, None]
-        scale = real * np.sqrt(SURFACE_L1_SCALE / np.maximum(np.abs(surface), SURFACE_L1_SCALE))
-        residuals[:, :width, 0] = scale * surface
-        scale *= mean_radius
-        surface_rows[:, :3] = rotation @ (-scale[:, None] * d_rho)
-        surface_rows[:, 3] = scale * (d_rho[:, 1] * q[:, 2] - d_rho[:, 2] * q[:, 1])
-        surface_rows[:, 4] = scale * (d_rho[:, 2] * q[:, 0] - d_rho[:, 0] * q[:, 2])
-        surface_rows[:, 5] = scale * (d_rho[:, 0] * q[:, 1] - d_rho[:, 1] * q[:, 0])
-        surface_rows[:, 6:] = -scale[:, None] * q * d_rho
-        surface_rows[:, 6:8] += (0.5 * scale * (rho - 1.0) / mean_radius)[:, None] * semi[:, :2]
-        scale = SURFACE_ENCODING_WEIGHT * real
-        encoding_rows[:, :3] = -scale[:, None] * rotation[:, :, 2:]
-        encoding_rows[:, 3], encoding_rows[:, 4] = -scale * q[:, 1], scale * q[:, 0]
-        encoding_rows[:, 8] = -scale * values * semi[:, 2]
-        residuals[:, width:, 0] = scale * (q[:, 2] - values * semi[:, 2])
-        normal = rows @ rows.transpose(0, 2, 1)
-        gradient = rows @ residuals
-        normal[:, diagonal, diagonal] = normal[:, diagonal, diagonal] * (1.0 + 1e-3) + 1e-18
+        weight = real * np.sqrt(SURFACE_L1_SCALE / np.maximum(np.abs(surface), SURFACE_L1_SCALE))
+        np.multiply(weight, surface, out=surface_rows[:, 9])
+        # minus the weighted gradient of the residual by the point in the cap frame
+        pull = (weight * mean_radius / -rho)[:, None] * q_scaled * inverse_semi
+        np.matmul(rotation, pull, out=surface_rows[:, :3])
+        np.subtract(pull[:, 2] * q[:, 1], pull[:, 1] * q[:, 2], out=surface_rows[:, 3])
+        np.subtract(pull[:, 0] * q[:, 2], pull[:, 2] * q[:, 0], out=surface_rows[:, 4])
+        np.subtract(pull[:, 1] * q[:, 0], pull[:, 0] * q[:, 1], out=surface_rows[:, 5])
+        np.multiply(q, pull, out=surface_rows[:, 6:9])
+        half_miss = (0.5 * weight) * (rho - 1.0)
+        surface_rows[:, 6] += half_miss * semi[:, :1]
+        surface_rows[:, 7] += half_miss * semi[:, 1:2]
+        np.multiply(rotation[:, :, 2:], -encoding_weight[:, None], out=encoding_rows[:, :3])
+        np.multiply(q[:, 1], -encoding_weight, out=encoding_rows[:, 3])
+        np.multiply(q[:, 0], encoding_weight, out=encoding_rows[:, 4])
+        np.multiply(weighted_values, -semi[:, 2:], out=encoding_rows[:, 8])
+        np.subtract(encoding_weight * q[:, 2], weighted_values * semi[:, 2:], out=encoding_rows[:, 9])
+        products = rows @ rows.transpose(0, 2, 1)
+        normal, gradient = products[:, :9, :9], products[:, :9, 9:]
+        diagonal = products.reshape(k, 100)[:, :99:11]
+        diagonal *= 1.0 + 1e-3
+        diagonal += 1e-18
         step = -np.linalg.solve(normal, gradient)[:, :, 0]
-        lengths = np.linalg.norm(step[:, :6].reshape(k, 2, 3), axis=2)
-        step[:, :6] *= np.repeat(np.minimum(1.0, STEP_LIMITS / np.maximum(lengths, 1e-12)), 3, axis=1)
+        moves = step.reshape(k, 3, 3)[:, :2]
+        lengths = np.sqrt(np.einsum("kij,kij->ki", moves, moves))
+        moves *= np.minimum(1.0, STEP_LIMITS / np.maximum(lengths, 1e-12))[:, :, None]
         center += step[:, :3]
         rotation = rotation @ Rotation.from_rotvec(step[:, 3:6]).as_matrix()
-        log_axes += np.clip(step[:, 6:], -0.2, 0.2)
+        log_axes += np.minimum(np.maximum(step[:, 6:], -0.2), 0.2)
     refined = rotation[:, :, 2]
     semi = np.exp(log_axes)
     height_ratio = semi[:, 2] / (0.5 * (semi[:, 0] + semi[:, 1]))
@@ -212,17 +256,14 @@ def refine_axes(points: np.ndarray, orientation: np.ndarray, lab: np.ndarray, ce
     return np.where(keep[:, None], refined, rotations[:, :, 2])
 
 
-def _fit_two_axes(radial2: np.ndarray, axial2: np.ndarray, lab: np.ndarray, k: int,
+def _fit_two_axes(a11: np.ndarray, a12: np.ndarray, a22: np.ndarray, b1: np.ndarray, b2: np.ndarray,
                   fallback: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least squares a r^2 + b z^2 = 1 per instance: s = a^-1/2, s_z = b^-1/2, s_z / s clamped.
+    """Least squares a r^2 + b z^2 = 1 per instance: s = a^-1/2, s_z = b^-1/2, s_z / s clamped; the
+    arguments are its per-instance sums of r^4, r^2 z^2, z^4, r^2 and z^2.
 
     Instances whose system is degenerate (e.g. a sliver of points at one height) keep ``fallback``,
     the fixed-ratio size.
     """
-    a11 = np.bincount(lab, radial2 * radial2, minlength=k)
-    a12 = np.bincount(lab, radial2 * axial2, minlength=k)
-    a22 = np.bincount(lab, axial2 * axial2, minlength=k)
-    b1, b2 = np.bincount(lab, radial2, minlength=k), np.bincount(lab, axial2, minlength=k)
     det = a11 * a22 - a12**2
     safe = np.where(det > 0, det, 1.0)
     a, b = (b1 * a22 - b2 * a12) / safe, (a11 * b2 - a12 * b1) / safe

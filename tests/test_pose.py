@@ -150,3 +150,23 @@ def test_a_cluster_too_small_for_the_surface_fit_keeps_the_encoding_axis():
 def test_an_unknown_axis_mode_is_refused():
     with pytest.raises(ValueError, match="axis mode"):
         fit_caps(np.zeros((3, 3)), np.zeros((3, 3)), np.zeros(3), np.ones(3), np.zeros(3, np.int64), axis="magic")
+
+
+def test_the_fit_does_not_depend_on_how_the_clusters_interleave():
+    """The fit sorts points by cluster, keeping each cluster's own order (the surface fit's subset is
+    taken along it): interleaving the clusters and noise points at random changes nothing."""
+    points, centers, orientation, labels, _ = oval_caps(count=8)
+    rng = np.random.default_rng(5)
+    noise = rng.uniform(-0.1, 0.1, (40, 3))
+    existence = rng.uniform(0.5, 1.0, len(points))
+    stacked = [np.concatenate(x) for x in ((points, noise), (centers, noise), (orientation, np.zeros(40)),
+                                          (existence, np.zeros(40)), (labels, np.full(40, -1)))]
+    labels = stacked[4]
+    # a random arrangement of the labels, filled by each cluster's points in their own order
+    arrangement = rng.permutation(labels)
+    order = np.empty(len(labels), np.int64)
+    order[np.argsort(arrangement, kind="stable")] = np.argsort(labels, kind="stable")
+    assert np.any(np.diff(labels[order]) < 0)
+    fit, interleaved = fit_caps(*stacked), fit_caps(*(x[order] for x in stacked))
+    for field in ("centers", "rotations", "scales", "scores", "counts"):
+        np.testing.assert_allclose(getattr(interleaved, field), getattr(fit, field), rtol=1e-9, atol=1e-12)
