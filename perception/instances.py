@@ -5,7 +5,7 @@ cap centres; DBSCAN groups the existence points themselves and relies on the gap
 teaches the network to leave between caps. Both come from scikit-learn.
 
 MeanShift's cost is scikit-learn's per-call overhead: one neighbour query per seed and step, about 185
-a bed. scikit-learn 1.9 runs every queried array through narwhals' dataframe checks, which made the
+a bed, 93 with the seeds sent part of the way up first (``SEED_STEPS``). scikit-learn 1.9 runs every queried array through narwhals' dataframe checks, which made the
 clustering of a val50 bed 155-160 ms against 83-92 ms with 1.8 (same labels, MeanShift and DBSCAN, on
 all of val50), so ``pyproject.toml`` keeps it below 1.9.
 """
@@ -17,10 +17,16 @@ from dataclasses import dataclass
 import numpy as np
 import sklearn
 from sklearn.cluster import DBSCAN, MeanShift, get_bin_seeds
+from sklearn.neighbors import KDTree
 
 from capture.frames import cell_lookup
 
 METHODS = ("meanshift", "dbscan")
+SEED_STEPS = 4
+"""Mean-shift steps every seed takes, all seeds in one neighbour query per step, before scikit-learn's
+MeanShift takes over: it climbs each seed with a query of its own, so this halves its queries (20
+val50 beds, medians in one run: 185 queries and 113.6 ms a bed without, 93 and 66.4 ms with 4 steps,
+78 and 62.8 ms with 6; labels the same on every bed of val50 and test50)."""
 SEEDINGS = ("peaks", "bins")
 
 
@@ -72,7 +78,7 @@ def cluster(points: np.ndarray, collapsed: np.ndarray, existence: np.ndarray, vo
 
 def _mean_shift(collapsed: np.ndarray, bandwidth: float, min_points: int, seeding: str) -> np.ndarray:
     """scikit-learn MeanShift labels (-1: no cluster) of finite collapsed points; seeds are bins
-    holding min_points / 2 points."""
+    holding min_points / 2 points, sent ``SEED_STEPS`` steps up their hill first (``_climb``)."""
 
     def fit(points: np.ndarray, seeds: np.ndarray) -> MeanShift:
         # our inputs are finite: skipping scikit-learn's per-call checks makes MeanShift ~20 % faster
@@ -82,7 +88,8 @@ def _mean_shift(collapsed: np.ndarray, bandwidth: float, min_points: int, seedin
     seeds = (peak_seeds if seeding == "peaks" else get_bin_seeds)(collapsed, bandwidth, max(1, min_points // 2))
     if len(seeds) == 0:
         return np.full(len(collapsed), -1, np.int64)
-    first = fit(collapsed, seeds)
+    tree = KDTree(collapsed)
+    first = fit(collapsed, _climb(tree, collapsed, seeds, bandwidth, SEED_STEPS))
     labels = first.labels_.astype(np.int64)
     if seeding != "peaks":
         return labels
@@ -94,7 +101,7 @@ def _mean_shift(collapsed: np.ndarray, bandwidth: float, min_points: int, seedin
     seeds = peak_seeds(collapsed[left], bandwidth, min_points)
     if len(seeds) == 0:
         return labels
-    second = fit(collapsed, seeds)
+    second = fit(collapsed, _climb(tree, collapsed, seeds, bandwidth, SEED_STEPS))
     gap = np.linalg.norm(second.cluster_centers_[:, None] - first.cluster_centers_[None], axis=2).min(1)
     new = np.flatnonzero(gap > bandwidth)
     renumber = np.full(len(second.cluster_centers_) + 1, -1, np.int64)
@@ -114,3 +121,20 @@ def peak_seeds(points: np.ndarray, bin_size: float, min_bin_freq: int = 1) -> np
     neighbour = cell_lookup(bins, bins[:, None, :] + offsets[None])
     neighbour_counts = np.where(neighbour >= 0, counts[neighbour], 0)
     return bins[counts >= neighbour_counts.max(1)] * bin_size
+
+
+
+def _climb(tree: KDTree, points: np.ndarray, seeds: np.ndarray, bandwidth: float, steps: int) -> np.ndarray:
+    """``seeds`` after ``steps`` of MeanShift's own iteration (each moves to the mean of the points
+    within ``bandwidth``), all at once; a seed with no point in reach stays."""
+    for _ in range(steps):
+        neighbours = tree.query_radius(seeds, r=bandwidth)
+        counts = np.fromiter(map(len, neighbours), np.int64, len(neighbours))
+        reached = counts > 0
+        if not reached.any():
+            break
+        counts = counts[reached]
+        sums = np.add.reduceat(points[np.concatenate(neighbours[reached])], np.cumsum(counts) - counts, axis=0)
+        seeds = seeds.copy()
+        seeds[reached] = sums / counts[:, None]
+    return seeds

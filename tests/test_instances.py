@@ -96,3 +96,26 @@ def test_cell_lookup_finds_equal_cells_and_nothing_else():
     queries = np.array([[[0, 0, 0], [-5, 4, 1]], [[3, -2, 7], [3, -2, 8]]])
     np.testing.assert_array_equal(cell_lookup(cells, queries), [[1, 2], [0, -1]])
     assert cell_lookup(cells[:0], queries).shape == (2, 2) and np.all(cell_lookup(cells[:0], queries) == -1)
+
+
+def test_climbing_the_seeds_is_meanshifts_own_step_and_changes_no_label(monkeypatch):
+    """A step moves each seed to the mean of the points within the bandwidth (brute force here); seeds
+    climbed first end where scikit-learn would have taken them, so the labels stay the same."""
+    import perception.instances as instances
+    from sklearn.neighbors import KDTree
+
+    rng = np.random.default_rng(6)
+    centres = rng.uniform(-0.05, 0.05, (12, 3)) * [1, 1, 0.2]
+    collapsed = blobs(rng, centres, rng.integers(8, 80, 12), 0.002)
+    seeds = peak_seeds(collapsed, 0.009, 2)
+    distance = np.linalg.norm(seeds[:, None] - collapsed[None], axis=2)
+    within = distance <= 0.009
+    expected = (within[:, :, None] * collapsed[None]).sum(1) / within.sum(1)[:, None]
+    np.testing.assert_allclose(instances._climb(KDTree(collapsed), collapsed, seeds, 0.009, steps=1), expected,
+                               rtol=0, atol=1e-15)
+    far = np.array([[1.0, 1.0, 1.0]])
+    np.testing.assert_array_equal(instances._climb(KDTree(collapsed), collapsed, far, 0.009, steps=4), far)
+    climbed = cluster(collapsed, collapsed, np.ones(len(collapsed)), 0.0045)
+    monkeypatch.setattr(instances, "SEED_STEPS", 0)
+    np.testing.assert_array_equal(cluster(collapsed, collapsed, np.ones(len(collapsed)), 0.0045), climbed)
+    assert len(set(climbed[climbed >= 0])) >= 8
