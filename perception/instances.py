@@ -5,9 +5,10 @@ cap centres; DBSCAN groups the existence points themselves and relies on the gap
 teaches the network to leave between caps. Both come from scikit-learn.
 
 MeanShift's cost is scikit-learn's per-call overhead: one neighbour query per seed and step, about 185
-a bed, 93 with the seeds sent part of the way up first (``SEED_STEPS``). scikit-learn 1.9 runs every queried array through narwhals' dataframe checks, which made the
-clustering of a val50 bed 155-160 ms against 83-92 ms with 1.8 (same labels, MeanShift and DBSCAN, on
-all of val50), so ``pyproject.toml`` keeps it below 1.9.
+a bed, 93 with the seeds sent part of the way up first (``SEED_STEPS``). scikit-learn 1.9 runs every
+queried array through narwhals' dataframe checks, which made the clustering of a val50 bed 155-160 ms
+against 83-92 ms with 1.8 (same labels, MeanShift and DBSCAN, on all of val50), so ``pyproject.toml``
+keeps it below 1.9.
 """
 
 from __future__ import annotations
@@ -123,11 +124,10 @@ def peak_seeds(points: np.ndarray, bin_size: float, min_bin_freq: int = 1) -> np
     return bins[counts >= neighbour_counts.max(1)] * bin_size
 
 
-
 def _climb(tree: KDTree, points: np.ndarray, seeds: np.ndarray, bandwidth: float, steps: int) -> np.ndarray:
     """``seeds`` after ``steps`` of MeanShift's own iteration (each moves to the mean of the points
     within ``bandwidth``), all at once; a seed with no point in reach stays."""
-    for _ in range(steps):
+    for _ in range(steps if len(seeds) else 0):
         neighbours = tree.query_radius(seeds, r=bandwidth)
         counts = np.fromiter(map(len, neighbours), np.int64, len(neighbours))
         reached = counts > 0
