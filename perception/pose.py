@@ -209,7 +209,7 @@ def refine_axes(points: np.ndarray, orientation: np.ndarray, lab: np.ndarray, ce
     rows = np.zeros((k, 10, 2 * width))
     surface_rows, encoding_rows = rows[:, :, :width], rows[:, :, width:]
     encoding_weight = SURFACE_ENCODING_WEIGHT * real
-    weighted_values = encoding_weight * values
+    minus_weight, minus_weighted_values = -encoding_weight, -encoding_weight * values
     for _ in range(iterations):
         semi = np.exp(log_axes)
         inverse_semi = (1.0 / semi)[:, :, None]
@@ -218,24 +218,24 @@ def refine_axes(points: np.ndarray, orientation: np.ndarray, lab: np.ndarray, ce
         rho = np.sqrt(np.einsum("kiw,kiw->kw", q_scaled, q_scaled))
         np.maximum(rho, 1e-9, out=rho)
         mean_radius = 0.5 * (semi[:, :1] + semi[:, 1:2])
-        surface = (rho - 1.0) * mean_radius
+        miss = rho - 1.0
+        surface = miss * mean_radius
         weight = real * np.sqrt(SURFACE_L1_SCALE / np.maximum(np.abs(surface), SURFACE_L1_SCALE))
         np.multiply(weight, surface, out=surface_rows[:, 9])
         # minus the weighted gradient of the residual by the point in the cap frame
-        pull = (weight * mean_radius / -rho)[:, None] * q_scaled * inverse_semi
+        pull = (weight * (-mean_radius) / rho)[:, None] * (q * inverse_semi**2)
         np.matmul(rotation, pull, out=surface_rows[:, :3])
         np.subtract(pull[:, 2] * q[:, 1], pull[:, 1] * q[:, 2], out=surface_rows[:, 3])
         np.subtract(pull[:, 0] * q[:, 2], pull[:, 2] * q[:, 0], out=surface_rows[:, 4])
         np.subtract(pull[:, 1] * q[:, 0], pull[:, 0] * q[:, 1], out=surface_rows[:, 5])
         np.multiply(q, pull, out=surface_rows[:, 6:9])
-        half_miss = (0.5 * weight) * (rho - 1.0)
-        surface_rows[:, 6] += half_miss * semi[:, :1]
-        surface_rows[:, 7] += half_miss * semi[:, 1:2]
-        np.multiply(rotation[:, :, 2:], -encoding_weight[:, None], out=encoding_rows[:, :3])
-        np.multiply(q[:, 1], -encoding_weight, out=encoding_rows[:, 3])
+        half_miss = (0.5 * weight) * miss
+        surface_rows[:, 6:8] += half_miss[:, None] * semi[:, :2, None]
+        np.multiply(rotation[:, :, 2:], minus_weight[:, None], out=encoding_rows[:, :3])
+        np.multiply(q[:, 1], minus_weight, out=encoding_rows[:, 3])
         np.multiply(q[:, 0], encoding_weight, out=encoding_rows[:, 4])
-        np.multiply(weighted_values, -semi[:, 2:], out=encoding_rows[:, 8])
-        np.subtract(encoding_weight * q[:, 2], weighted_values * semi[:, 2:], out=encoding_rows[:, 9])
+        np.multiply(minus_weighted_values, semi[:, 2:], out=encoding_rows[:, 8])
+        np.add(encoding_weight * q[:, 2], encoding_rows[:, 8], out=encoding_rows[:, 9])
         products = rows @ rows.transpose(0, 2, 1)
         normal, gradient = products[:, :9, :9], products[:, :9, 9:]
         diagonal = products.reshape(k, 100)[:, :99:11]
