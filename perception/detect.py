@@ -20,7 +20,6 @@ from perception.sparse import COORD_MAX, SparseTensor, voxelize
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "default.pt"
 
 
-
 @dataclass(frozen=True)
 class VoxelPrediction:
     """The network's encoding on each occupied voxel (centroid of its points), and the point map."""
