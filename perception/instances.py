@@ -5,7 +5,10 @@ cap centres; DBSCAN groups the existence points themselves and relies on the gap
 teaches the network to leave between caps. Both come from scikit-learn.
 
 MeanShift's cost is scikit-learn's per-call overhead: one neighbour query per seed and step, about 185
-a bed, 93 with the seeds sent part of the way up first (``SEED_STEPS``). scikit-learn 1.9 runs every
+a bed. So the seeds climb together first, one query for all per step (``_climb``), and scikit-learn
+then takes one step per distinct seed and one query per centre to drop duplicates, about 61 queries a
+bed with the same labels (val50, session 18: 46.8 against 60.9 ms a bed when seeds were sent 4 steps
+up first, the session-17 code, and 113.6 ms before that). scikit-learn 1.9 runs every
 queried array through narwhals' dataframe checks, which made the clustering of a val50 bed 155-160 ms
 against 83-92 ms with 1.8 (same labels, MeanShift and DBSCAN, on all of val50), so ``pyproject.toml``
 keeps it below 1.9.
@@ -23,11 +26,8 @@ from sklearn.neighbors import KDTree
 from capture.frames import cell_lookup
 
 METHODS = ("meanshift", "dbscan")
-SEED_STEPS = 4
-"""Mean-shift steps every seed takes, all seeds in one neighbour query per step, before scikit-learn's
-MeanShift takes over: it climbs each seed with a query of its own, so this halves its queries (20
-val50 beds, medians in one run: 185 queries and 113.6 ms a bed without, 93 and 66.4 ms with 4 steps,
-78 and 62.8 ms with 6; labels the same on every bed of val50 and test50)."""
+CLIMB_MAX_STEPS = 300
+"""Most steps a seed climbs before scikit-learn's MeanShift takes over (its own ``max_iter``)."""
 SEEDINGS = ("peaks", "bins")
 
 
@@ -46,10 +46,10 @@ class ClusterConfig:
     min_points / 2 collapsed points); "peaks" = only those of them that hold at least as many points as
     each of their 6 face neighbours, then a second pass over the points left over. A cap's collapsed
     points straddle several bins, which all climb to the same centre, and scikit-learn runs each seed
-    as its own Python loop, so fewer seeds were faster; since the seeds take their first steps together
-    (``SEED_STEPS``) both take about as long (``bench/perception.py`` prints both). Peaks stay the
-    default for the second pass's small caps: val50 AP@25 99.64 % against 99.60 % with bins (shipped
-    model, session 17)."""
+    as its own Python loop, so fewer seeds were faster; since the seeds climb together (``_climb``)
+    both take about as long (``bench/perception.py`` prints both). Peaks stay the default for the
+    second pass's small caps: val50 AP@25 99.64 % against 99.60 % with bins (shipped model, session
+    17)."""
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -82,7 +82,7 @@ def cluster(points: np.ndarray, collapsed: np.ndarray, existence: np.ndarray, vo
 
 def _mean_shift(collapsed: np.ndarray, bandwidth: float, min_points: int, seeding: str) -> np.ndarray:
     """scikit-learn MeanShift labels (-1: no cluster) of finite collapsed points; seeds are bins
-    holding min_points / 2 points, sent ``SEED_STEPS`` steps up their hill first (``_climb``)."""
+    holding min_points / 2 points, sent up their hill together first (``_climb``)."""
 
     def fit(points: np.ndarray, seeds: np.ndarray) -> MeanShift:
         # our inputs are finite: skipping scikit-learn's per-call checks makes MeanShift ~20 % faster
@@ -93,7 +93,7 @@ def _mean_shift(collapsed: np.ndarray, bandwidth: float, min_points: int, seedin
     if len(seeds) == 0:
         return np.full(len(collapsed), -1, np.int64)
     tree = KDTree(collapsed)
-    first = fit(collapsed, _climb(tree, collapsed, seeds, bandwidth, SEED_STEPS))
+    first = fit(collapsed, _climb(tree, collapsed, seeds, bandwidth, CLIMB_MAX_STEPS))
     labels = first.labels_.astype(np.int64)
     if seeding != "peaks":
         return labels
@@ -105,7 +105,7 @@ def _mean_shift(collapsed: np.ndarray, bandwidth: float, min_points: int, seedin
     seeds = peak_seeds(collapsed[left], bandwidth, min_points)
     if len(seeds) == 0:
         return labels
-    second = fit(collapsed, _climb(tree, collapsed, seeds, bandwidth, SEED_STEPS))
+    second = fit(collapsed, _climb(tree, collapsed, seeds, bandwidth, CLIMB_MAX_STEPS))
     gap = np.linalg.norm(second.cluster_centers_[:, None] - first.cluster_centers_[None], axis=2).min(1)
     new = np.flatnonzero(gap > bandwidth)
     renumber = np.full(len(second.cluster_centers_) + 1, -1, np.int64)
@@ -127,17 +127,27 @@ def peak_seeds(points: np.ndarray, bin_size: float, min_bin_freq: int = 1) -> np
     return bins[counts >= neighbour_counts.max(1)] * bin_size
 
 
-def _climb(tree: KDTree, points: np.ndarray, seeds: np.ndarray, bandwidth: float, steps: int) -> np.ndarray:
-    """``seeds`` after ``steps`` of MeanShift's own iteration (each moves to the mean of the points
-    within ``bandwidth``), all at once; a seed with no point in reach stays."""
-    for _ in range(steps if len(seeds) else 0):
-        neighbours = tree.query_radius(seeds, r=bandwidth)
+def _climb(tree: KDTree, points: np.ndarray, seeds: np.ndarray, bandwidth: float, max_steps: int) -> np.ndarray:
+    """The distinct ``seeds`` after MeanShift's own iteration (each moves to the mean of the points
+    within ``bandwidth``), all at once, one neighbour query per step: a seed stops where its next step
+    would be within scikit-learn's stopping distance (1e-3 bandwidths), so that scikit-learn takes
+    that step and ends where it would have from the start. A seed with no point in reach stays."""
+    seeds = seeds.copy()
+    moving = np.arange(len(seeds))
+    for _ in range(max_steps):
+        if not len(moving):
+            break
+        neighbours = tree.query_radius(seeds[moving], r=bandwidth)
         counts = np.fromiter(map(len, neighbours), np.int64, len(neighbours))
         reached = counts > 0
-        if not reached.any():
+        moving, counts = moving[reached], counts[reached]
+        if not len(moving):
             break
-        counts = counts[reached]
         sums = np.add.reduceat(points[np.concatenate(neighbours[reached])], np.cumsum(counts) - counts, axis=0)
-        seeds = seeds.copy()
-        seeds[reached] = sums / counts[:, None]
-    return seeds
+        means = sums / counts[:, None]
+        far = np.linalg.norm(means - seeds[moving], axis=1) > 1e-3 * bandwidth
+        moving = moving[far]
+        seeds[moving] = means[far]
+    # seeds that met on the way have the same path from there on, and scikit-learn's result does not
+    # depend on the seeds' order
+    return np.unique(seeds, axis=0)

@@ -99,23 +99,33 @@ def test_cell_lookup_finds_equal_cells_and_nothing_else():
 
 
 def test_climbing_the_seeds_is_meanshifts_own_step_and_changes_no_label(monkeypatch):
-    """A step moves each seed to the mean of the points within the bandwidth (brute force here); seeds
-    climbed first end where scikit-learn would have taken them, so the labels stay the same."""
+    """A step moves each seed to the mean of the points within the bandwidth (brute force here); the
+    climb stops each seed where scikit-learn's next step would be its last, so the labels stay the same."""
     import perception.instances as instances
+    from sklearn.cluster import get_bin_seeds
     from sklearn.neighbors import KDTree
 
     rng = np.random.default_rng(6)
     centres = rng.uniform(-0.05, 0.05, (12, 3)) * [1, 1, 0.2]
     collapsed = blobs(rng, centres, rng.integers(8, 80, 12), 0.002)
-    seeds = peak_seeds(collapsed, 0.009, 2)
-    distance = np.linalg.norm(seeds[:, None] - collapsed[None], axis=2)
-    within = distance <= 0.009
-    expected = (within[:, :, None] * collapsed[None]).sum(1) / within.sum(1)[:, None]
-    np.testing.assert_allclose(instances._climb(KDTree(collapsed), collapsed, seeds, 0.009, steps=1), expected,
+    tree, bandwidth = KDTree(collapsed), 0.009
+
+    def step(seeds):
+        within = np.linalg.norm(seeds[:, None] - collapsed[None], axis=2) <= bandwidth
+        return (within[:, :, None] * collapsed[None]).sum(1) / within.sum(1)[:, None]
+
+    seeds = peak_seeds(collapsed, bandwidth, 2)
+    first = step(seeds)
+    assert (np.linalg.norm(first - seeds, axis=1) > 1e-3 * bandwidth).all()
+    np.testing.assert_allclose(instances._climb(tree, collapsed, seeds, bandwidth, 1), np.unique(first, axis=0),
                                rtol=0, atol=1e-15)
+    bins = get_bin_seeds(collapsed, bandwidth, 2)
+    climbed = instances._climb(tree, collapsed, bins, bandwidth, instances.CLIMB_MAX_STEPS)
+    assert len(climbed) < len(bins)
+    assert (np.linalg.norm(step(climbed) - climbed, axis=1) <= 1e-3 * bandwidth).all()
     far = np.array([[1.0, 1.0, 1.0]])
-    np.testing.assert_array_equal(instances._climb(KDTree(collapsed), collapsed, far, 0.009, steps=4), far)
-    climbed = cluster(collapsed, collapsed, np.ones(len(collapsed)), 0.0045)
-    monkeypatch.setattr(instances, "SEED_STEPS", 0)
-    np.testing.assert_array_equal(cluster(collapsed, collapsed, np.ones(len(collapsed)), 0.0045), climbed)
-    assert len(set(climbed[climbed >= 0])) >= 8
+    np.testing.assert_array_equal(instances._climb(tree, collapsed, far, bandwidth, 4), far)
+    labels = cluster(collapsed, collapsed, np.ones(len(collapsed)), 0.0045)
+    monkeypatch.setattr(instances, "CLIMB_MAX_STEPS", 0)
+    np.testing.assert_array_equal(cluster(collapsed, collapsed, np.ones(len(collapsed)), 0.0045), labels)
+    assert len(set(labels[labels >= 0])) >= 8
