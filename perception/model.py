@@ -115,12 +115,12 @@ class ResBlock(nn.Module):
         self.norm1 = SparseBatchNorm(channels)
         self.conv2 = SubmanifoldConv3d(channels, channels, 3)
         self.norm2 = SparseBatchNorm(channels)
-        self.relu = SparseReLU()
+        self.relu = SparseReLU(inplace=True)
 
     def forward(self, x: SparseTensor) -> SparseTensor:
         out = self.relu(self.norm1(self.conv1(x)))
         out = self.norm2(self.conv2(out))
-        return out.replace_features(torch.relu(out.features + x.features))
+        return out.replace_features(torch.relu_(out.features + x.features))
 
 
 def _down(in_ch: int, out_ch: int) -> nn.ModuleDict:
@@ -146,7 +146,7 @@ class MushroomNet(nn.Module):
         """Scale at which inference reads clouds (``perception.detect.predict``), chosen per model."""
         c1, c2, c3, c4 = config.channels
         u1, u2, u3, u4 = config.up_channels
-        self.relu = SparseReLU()
+        self.relu = SparseReLU(inplace=True)
         self.conv1 = SubmanifoldConv3d(config.in_channels, c1, config.first_kernel)
         self.norm1 = SparseBatchNorm(c1)
         self.block1 = ResBlock(c1)

@@ -210,12 +210,13 @@ class _SparseConvFunction(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, features: torch.Tensor, weight: torch.Tensor, kmap: KernelMap, n_out: int):
-        out = features.new_zeros(n_out, weight.shape[2])
+        weights = weight.unbind(0)
+        # a submanifold map's identity offset starts the sum, which saves zeroing the output and a pass
+        identity = next((k for k, (i, _) in enumerate(kmap) if i is None), None)
+        out = features.new_zeros(n_out, weight.shape[2]) if identity is None else features @ weights[identity]
         for k, (i, o) in enumerate(kmap):
-            if i is None:
-                out += features @ weight[k]
-            elif len(i):
-                out.index_add_(0, o, features.index_select(0, i) @ weight[k])
+            if i is not None and len(i):
+                out.index_add_(0, o, features.index_select(0, i) @ weights[k])
         ctx.save_for_backward(features, weight)
         ctx.kmap = kmap
         return out
@@ -326,7 +327,7 @@ class SparseBatchNorm(nn.BatchNorm1d):
 
 
 class SparseReLU(nn.ReLU):
-    """ReLU on the features."""
+    """ReLU on the features; ``inplace=True`` where they are a fresh output nothing else reads."""
 
     def forward(self, x: SparseTensor) -> SparseTensor:
         return x.replace_features(super().forward(x.features))
