@@ -501,8 +501,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--network", default="slim-no", help="network preset: slim-no (default, the shipped "
                        "model's: slim U-Net fed normals and each centroid's place in its voxel), slim-n (normals "
                        "only), slim (occupancy only, as the paper), wide-no (slim-no with wider coarse levels), "
-                       "slim-no-k5 (slim-no with a 5^3 first convolution) "
-                       "or fcgf (the paper's full backbone)")
+                       "slim-no-k5 (slim-no with a 5^3 first convolution), lean-no (slim-no with 32 channels "
+                       "in the full-resolution up block) or fcgf (the paper's full backbone)")
     train.add_argument("--seed", type=_seed, default=0)
     train.add_argument("--checkpoint-every", type=_positive(int), default=200)
     train.add_argument("--validate-every", type=_positive(int), default=1000)
