@@ -38,6 +38,9 @@ def main() -> None:
     parser.add_argument("--zoom", type=float, help="scale the network reads clouds at (default: the model's own)")
     parser.add_argument("--baseline-scenes", type=int, default=5, help="scenes for the slow baseline clustering")
     args = parser.parse_args()
+    if args.scenes < 1 or not 1 <= args.baseline_scenes <= args.scenes:
+        parser.error("--scenes must be at least 1 and --baseline-scenes between 1 and --scenes: the ratio "
+                     "against the baseline is measured on the same scenes")
     torch.set_num_threads(2)
     model, meta = load_weights(args.model)
     args.zoom = model.inference_zoom if args.zoom is None else args.zoom

@@ -26,8 +26,11 @@ from sklearn.neighbors import KDTree
 from capture.frames import cell_lookup
 
 METHODS = ("meanshift", "dbscan")
-CLIMB_MAX_STEPS = 300
-"""Most steps a seed climbs before scikit-learn's MeanShift takes over (its own ``max_iter``)."""
+MEAN_SHIFT_MAX_ITER = 300
+"""scikit-learn MeanShift's default ``max_iter``: the steps a seed may take, our climb and its own together."""
+CLIMB_MAX_STEPS = MEAN_SHIFT_MAX_ITER
+"""Most steps a seed climbs before scikit-learn's MeanShift takes over with what is left of
+``MEAN_SHIFT_MAX_ITER``; with all of it, scikit-learn takes exactly the one step left to each seed."""
 SEEDINGS = ("peaks", "bins")
 
 
@@ -87,7 +90,8 @@ def _mean_shift(collapsed: np.ndarray, bandwidth: float, min_points: int, seedin
     def fit(points: np.ndarray, seeds: np.ndarray) -> MeanShift:
         # our inputs are finite: skipping scikit-learn's per-call checks makes MeanShift ~20 % faster
         with sklearn.config_context(assume_finite=True, skip_parameter_validation=True):
-            return MeanShift(bandwidth=bandwidth, seeds=seeds, cluster_all=False).fit(points)
+            return MeanShift(bandwidth=bandwidth, seeds=seeds, cluster_all=False,
+                             max_iter=MEAN_SHIFT_MAX_ITER - CLIMB_MAX_STEPS).fit(points)
 
     seeds = (peak_seeds if seeding == "peaks" else get_bin_seeds)(collapsed, bandwidth, max(1, min_points // 2))
     if len(seeds) == 0:
@@ -131,7 +135,8 @@ def _climb(tree: KDTree, points: np.ndarray, seeds: np.ndarray, bandwidth: float
     """The distinct ``seeds`` after MeanShift's own iteration (each moves to the mean of the points
     within ``bandwidth``), all at once, one neighbour query per step: a seed stops where its next step
     would be within scikit-learn's stopping distance (1e-3 bandwidths), so that scikit-learn takes
-    that step and ends where it would have from the start. A seed with no point in reach stays."""
+    that step and ends where it would have from the start (up to rounding: its mean sums the points in
+    another order). A seed with no point in reach stays."""
     seeds = seeds.copy()
     moving = np.arange(len(seeds))
     for _ in range(max_steps):

@@ -102,7 +102,7 @@ def test_climbing_the_seeds_is_meanshifts_own_step_and_changes_no_label(monkeypa
     """A step moves each seed to the mean of the points within the bandwidth (brute force here); the
     climb stops each seed where scikit-learn's next step would be its last, so the labels stay the same."""
     import perception.instances as instances
-    from sklearn.cluster import get_bin_seeds
+    from sklearn.cluster import MeanShift, get_bin_seeds
     from sklearn.neighbors import KDTree
 
     rng = np.random.default_rng(6)
@@ -120,9 +120,16 @@ def test_climbing_the_seeds_is_meanshifts_own_step_and_changes_no_label(monkeypa
     np.testing.assert_allclose(instances._climb(tree, collapsed, seeds, bandwidth, 1), np.unique(first, axis=0),
                                rtol=0, atol=1e-15)
     bins = get_bin_seeds(collapsed, bandwidth, 2)
-    climbed = instances._climb(tree, collapsed, bins, bandwidth, instances.CLIMB_MAX_STEPS)
+    for start in (seeds, bins):
+        climbed = instances._climb(tree, collapsed, start, bandwidth, instances.CLIMB_MAX_STEPS)
+        assert (np.linalg.norm(step(climbed) - climbed, axis=1) <= 1e-3 * bandwidth).all()
+        # scikit-learn from the climbed seeds, with the steps left, ends where it ends from the start
+        ours = MeanShift(bandwidth=bandwidth, seeds=climbed, cluster_all=False,
+                         max_iter=instances.MEAN_SHIFT_MAX_ITER - instances.CLIMB_MAX_STEPS).fit(collapsed)
+        theirs = MeanShift(bandwidth=bandwidth, seeds=start, cluster_all=False).fit(collapsed)
+        np.testing.assert_allclose(ours.cluster_centers_, theirs.cluster_centers_, rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(ours.labels_, theirs.labels_)
     assert len(climbed) < len(bins)
-    assert (np.linalg.norm(step(climbed) - climbed, axis=1) <= 1e-3 * bandwidth).all()
     far = np.array([[1.0, 1.0, 1.0]])
     np.testing.assert_array_equal(instances._climb(tree, collapsed, far, bandwidth, 4), far)
     labels = cluster(collapsed, collapsed, np.ones(len(collapsed)), 0.0045)
