@@ -8,7 +8,8 @@ pose <= 5 ms for 45 caps. The pose stage includes the axis's surface fit; the en
 alone (the paper's pose fit) is timed beside it, outside the end to end. A single pose step of a few
 milliseconds moves by tens of percent with the machine's load, so the scene with most caps is also
 fitted again ``POSE_REPEATS`` times on the same inputs and the median printed.
-Usage: python bench/perception.py [--model PATH] [--scenes N] [--visibility hpr|camera] [--zoom Z]
+Usage: python bench/perception.py [--model PATH] [--scenes N] [--baseline-scenes N] [--visibility hpr|camera]
+       [--zoom Z]
 """
 import sys
 from pathlib import Path
@@ -33,6 +34,7 @@ from perception.train import load_weights
 
 POSE_REPEATS = 25
 
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", type=Path, default=DEFAULT_WEIGHTS)
@@ -51,7 +53,7 @@ def main() -> None:
     scenes = load_preset("val50", args.visibility, progress=False, limit=args.scenes)
     rows = {k: [] for k in ("voxels", "caps", "voxelise", "network", "instances", "pose", "total", "baseline",
                             "bins", "encoding")}
-    most_caps_inputs: tuple = ()
+    pose_inputs = []
     for index, scene in enumerate([scenes[0]] + scenes):
         t0 = time.perf_counter()
         # as perception.detect.predict (but for mapping dropped points back to voxels): the network reads
@@ -73,8 +75,7 @@ def main() -> None:
                            ("network", t2 - t1), ("instances", t3 - t2), ("pose", t4 - t3), ("total", t4 - t0),
                            ("encoding", t5 - t4)):
             rows[key].append(value)
-        if len(fit.centers) > max(rows["caps"][:-1], default=-1):
-            most_caps_inputs = (centroids, centers, orientation, existence, labels)
+        pose_inputs.append((centroids, centers, orientation, existence, labels))
         if index <= args.baseline_scenes:
             candidates = centers[existence > 0.5]
             t6 = time.perf_counter()
@@ -106,7 +107,7 @@ def main() -> None:
     repeats = []
     for _ in range(POSE_REPEATS):
         t = time.perf_counter()
-        fit_caps(*most_caps_inputs)
+        fit_caps(*pose_inputs[most])
         repeats.append(time.perf_counter() - t)
     low, median, high = 1000 * np.percentile(repeats, [25, 50, 75])
     print(f"  pose for the scene with most caps ({rows['caps'][most]}): {1000 * rows['pose'][most]:.2f} ms in the "
