@@ -128,6 +128,7 @@ def _non_negative_int(text: str) -> int:
 _seed = _at_most(_non_negative_int, 2**63 - 1, " (seeds are below 2^63)")
 _threads = _at_most(_positive(int), 4 * CORES, f" (4 per core; this machine has {CORES})")
 _learning_rate = _at_most(_positive(float), 1.0, " (Adam's steps are about this size in every weight)")
+_run_fraction = _at_most(_positive(float), 1.0, " (a fraction of the run's iterations)")
 _mushroom_count = _at_most(_non_negative_int, MAX_MUSHROOMS, " (a 0.5 m bed is full at about 260)")
 _spacing = _at_least(_at_most(_positive(float), 0.02, " metres (0.003 is 3 mm)"), 0.001,
                      " metres: a finer spacing only multiplies the points (0.003 is 3 mm)")
@@ -199,7 +200,8 @@ def train_config(args: argparse.Namespace):
     from perception.synthetic.scene import SceneConfig
     from perception.train import TrainConfig
 
-    return TrainConfig(iterations=args.iterations, lr=args.lr, network=args.network, seed=args.seed,
+    return TrainConfig(iterations=args.iterations, lr=args.lr, milestones=tuple(args.milestones),
+                       network=args.network, seed=args.seed,
                        checkpoint_every=args.checkpoint_every, validate_every=args.validate_every,
                        validation_scenes=args.validation_scenes, weight_existence=args.weight_existence,
                        weight_residual=args.weight_residual, weight_orientation=args.weight_orientation,
@@ -220,6 +222,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     low, high = args.scale_jitter
     if low > high:
         raise CliError(f"--scale-jitter wants LOW HIGH with LOW <= HIGH, got {low} {high}")
+    if any(later <= earlier for earlier, later in zip(args.milestones, args.milestones[1:])):
+        raise CliError(f"--milestones must increase, got {' '.join(map(str, args.milestones))}")
     new_folder = not Path(args.out).exists()
     run_dir = _writable_dir(args.out)
     if (run_dir / "checkpoint.pt").exists() and not args.resume:
@@ -498,6 +502,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--out", required=True, help="run folder: checkpoint.pt, history.csv, model.pt, .rrd")
     train.add_argument("--iterations", type=_positive(int), default=20000, help="default 20000 (the paper's)")
     train.add_argument("--lr", type=_learning_rate, default=1e-3, help="Adam learning rate, at most 1 (default 1e-3)")
+    train.add_argument("--milestones", type=_run_fraction, nargs="+", default=[0.6, 0.85], metavar="FRACTION",
+                       help="fractions of --iterations where the learning rate drops tenfold (default 0.6 0.85)")
     train.add_argument("--network", default="slim-no", help="network preset: slim-no (default, the shipped "
                        "model's: slim U-Net fed normals and each centroid's place in its voxel), slim-n (normals "
                        "only), slim (occupancy only, as the paper), wide-no (slim-no with wider coarse levels), "

@@ -70,14 +70,15 @@ def test_train_flags_set_the_loss_weights_and_defaults_are_the_papers():
     default = train_config(parse(["train", "--out", "RUN"]))
     paper = TrainConfig()
     assert (default.weight_existence, default.weight_residual, default.weight_orientation,
-            default.orientation_on_caps, default.cap_balance, default.scale_jitter) == (
+            default.orientation_on_caps, default.cap_balance, default.scale_jitter, default.milestones) == (
         paper.weight_existence, paper.weight_residual, paper.weight_orientation, paper.orientation_on_caps,
-        paper.cap_balance, paper.scale_jitter)
+        paper.cap_balance, paper.scale_jitter, paper.milestones)
     tuned = train_config(parse(["train", "--out", "RUN", "--weight-existence", "2", "--weight-residual", "50",
                                 "--weight-orientation", "10", "--orientation-on-caps", "--cap-balance",
-                                "--scale-jitter", "1.0", "1.2"]))
+                                "--scale-jitter", "1.0", "1.2", "--milestones", "0.75", "0.9"]))
     assert (tuned.weight_existence, tuned.weight_residual, tuned.weight_orientation, tuned.orientation_on_caps,
-            tuned.cap_balance, tuned.scale_jitter) == (2.0, 50.0, 10.0, True, True, (1.0, 1.2))
+            tuned.cap_balance, tuned.scale_jitter, tuned.milestones) == (2.0, 50.0, 10.0, True, True, (1.0, 1.2),
+                                                                         (0.75, 0.9))
     assert default.scene == paper.scene
     from perception.detect import DEFAULT_WEIGHTS
     from perception.model import INFERENCE_ZOOM
@@ -107,6 +108,14 @@ def test_a_scale_jitter_upside_down_gives_one_line_and_exit_2(tmp_path):
     assert not (tmp_path / "run" / "checkpoint.pt").exists()
 
 
+def test_milestones_out_of_order_give_one_line_and_exit_2(tmp_path):
+    result = run("train", "--out", str(tmp_path / "run"), "--milestones", "0.8", "0.6")
+    assert result.returncode != 0 and "Traceback" not in result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--milestones must increase" in lines[0], result.stderr
+    assert not (tmp_path / "run").exists()
+
+
 def test_a_loss_weight_that_is_not_positive_gives_one_line_and_exit_2(tmp_path):
     result = run("train", "--out", str(tmp_path / "run"), "--weight-existence", "0")
     assert result.returncode == 2 and "Traceback" not in result.stderr
@@ -118,6 +127,7 @@ def test_a_loss_weight_that_is_not_positive_gives_one_line_and_exit_2(tmp_path):
     (["synth", "--mushrooms", "5", "100000", "--out", "OUT"], "at most 300"),
     (["train", "--out", "OUT", "--lr", "nan"], "must be a finite number"),
     (["train", "--out", "OUT", "--lr", "2"], "at most 1"),
+    (["train", "--out", "OUT", "--milestones", "0.6", "1.5"], "a fraction of the run's iterations"),
     (["synth", "--out", "OUT", "--scenes", "9" * 400], "at most 2147483647"),
     (["train", "--out", "OUT", "--scale-jitter", "1", "inf"], "must be a finite number"),
     (["train", "--out", "OUT", "--seed", "99999999999999999999999"], "below 2^63"),
