@@ -19,6 +19,7 @@ import numpy as np  # noqa: E402
 from capture.mcap_io import McapRecorder, McapSource  # noqa: E402
 from capture.virtual import sense_view  # noqa: E402
 from pipeline.sources import VirtualBedRig, virtual_bed_source  # noqa: E402
+from pipeline.process import reuse_freed_memory  # noqa: E402
 
 
 def main() -> None:
@@ -26,6 +27,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=150)
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
+    reuse_freed_memory()
     source, _ = virtual_bed_source(VirtualBedRig(views=args.frames))
     frames, render_s = [], []
     with source:

@@ -28,6 +28,7 @@ from fusion.registration import (RegistrationConfig, fpfh, pose_change, prepare_
                                  register_pair)
 from fusion.turntable import Rig  # noqa: E402
 from pipeline.sources import VirtualBedRig, virtual_bed_source  # noqa: E402
+from pipeline.process import reuse_freed_memory  # noqa: E402
 
 reg = o3d.pipelines.registration
 SUCCESS_DEG, SUCCESS_M = 1.0, 0.005
@@ -98,6 +99,7 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=18)
     parser.add_argument("--no-baseline", action="store_true", help="skip the (slow) multiway baseline")
     args = parser.parse_args()
+    reuse_freed_memory()
     ours, baseline = [], []
     for seed in range(args.beds):
         bed, truth, blind, rig = session(seed, args.views)

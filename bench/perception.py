@@ -31,6 +31,7 @@ from perception.instances import ClusterConfig, cluster
 from perception.pose import fit_caps
 from perception.synthetic.dataset import load_preset
 from perception.train import load_weights
+from pipeline.process import reuse_freed_memory
 
 POSE_REPEATS = 25
 
@@ -43,6 +44,7 @@ def main() -> None:
     parser.add_argument("--zoom", type=float, help="scale the network reads clouds at (default: the model's own)")
     parser.add_argument("--baseline-scenes", type=int, default=5, help="scenes for the slow baseline clustering")
     args = parser.parse_args()
+    reuse_freed_memory()
     if args.scenes < 1 or not 1 <= args.baseline_scenes <= args.scenes:
         parser.error("--scenes must be at least 1 and --baseline-scenes between 1 and --scenes: the ratio "
                      "against the baseline is measured on the same scenes")

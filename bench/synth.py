@@ -24,6 +24,7 @@ import numpy as np  # noqa: E402
 
 from perception.synthetic.dataset import scene_seeds  # noqa: E402
 from perception.synthetic.scene import SceneConfig, generate_scene  # noqa: E402
+from pipeline.process import reuse_freed_memory  # noqa: E402
 
 PAPER_MS_PER_SCENE = 340.0
 
@@ -34,6 +35,7 @@ def main() -> None:
     parser.add_argument("--models", nargs="+", default=["hpr", "camera", "katz"])
     parser.add_argument("--spacing", type=float, default=0.0051, help="point spacing in metres (default 0.0051)")
     args = parser.parse_args()
+    reuse_freed_memory()
     os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
     seeds = scene_seeds(123, args.scenes)
     generate_scene(seeds[0])

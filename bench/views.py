@@ -26,6 +26,7 @@ from perception.detect import DEFAULT_WEIGHTS, detect_points, transform_result  
 from perception.evaluate import SceneCaps, evaluate  # noqa: E402
 from perception.train import load_weights  # noqa: E402
 from pipeline.sources import VirtualBedRig, virtual_bed_source  # noqa: E402
+from pipeline.process import reuse_freed_memory  # noqa: E402
 
 MIN_CAP_POINTS, ON_SURFACE = 5, 0.002
 SETTINGS = {"1 view": (0,), "2 cameras (opposite sides)": (0, 9), "4 views": (0, 4, 9, 13),
@@ -52,6 +53,7 @@ def main() -> None:
     parser.add_argument("--model", type=Path, default=DEFAULT_WEIGHTS)
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
+    reuse_freed_memory()
     torch.set_num_threads(args.threads)
     model, meta = load_weights(args.model)
     preds = {name: [] for name in SETTINGS}

@@ -11,6 +11,8 @@ import threading
 import time
 from pathlib import Path
 
+from pipeline.process import reuse_freed_memory
+
 
 class CliError(Exception):
     """A problem with the user's input: reported in one line, exit status 2."""
@@ -623,6 +625,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
         command = f"mushroom-pose {args.command}"
+        reuse_freed_memory()
         return args.run(args)
     except CliError as error:
         if not interrupted:
