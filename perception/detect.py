@@ -12,7 +12,7 @@ import torch
 from capture.frames import cell_lookup, transform_points, voxel_representatives
 from perception.cap import Mushroom
 from perception.instances import ClusterConfig, cluster
-from perception.model import LENGTH_UNIT, MushroomNet, voxel_features
+from perception.model import LENGTH_UNIT, MushroomNet, inference_model, voxel_features
 from perception.pose import CapFit, fit_caps
 from perception.sparse import COORD_MAX, SparseTensor, voxelize
 
@@ -104,10 +104,9 @@ def predict(model: MushroomNet, points: np.ndarray, thin: bool = True,
 def network_output(model: MushroomNet, coords: torch.Tensor, zoomed_centroids: torch.Tensor, zoom: float):
     """The network on voxels of a cloud scaled by ``zoom`` (from ``network_input``), decoded in the
     cloud's own metres: voxel centroids, existence, predicted cap centres, orientation values (numpy)."""
-    model.eval()
     device = next(model.parameters()).device
     features = torch.from_numpy(voxel_features(model.config, zoomed_centroids.numpy())).to(device)
-    out = model(SparseTensor(features, coords)).double().cpu()
+    out = inference_model(model)(SparseTensor(features, coords)).double().cpu()
     centroids = zoomed_centroids.numpy() / zoom
     return (centroids, torch.sigmoid(out[:, 0]).numpy(), centroids + out[:, 1:4].numpy() * LENGTH_UNIT / zoom,
             out[:, 4].clamp(0.0, 1.0).numpy())

@@ -212,11 +212,16 @@ class _SparseConvFunction(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, features: torch.Tensor, weight: torch.Tensor, kmap: KernelMap, n_out: int):
+    def forward(ctx, features: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, kmap: KernelMap,
+                n_out: int):
         weights = weight.unbind(0)
-        # a submanifold map's identity offset starts the sum, which saves zeroing the output and a pass
+        # the sum starts at a submanifold map's identity offset, plus the bias, or at the bias alone:
+        # no pass to zero the output, none to add the bias
         identity = next((k for k, (i, _) in enumerate(kmap) if i is None), None)
-        out = features.new_zeros(n_out, weight.shape[2]) if identity is None else features @ weights[identity]
+        if identity is not None:
+            out = features @ weights[identity] if bias is None else torch.addmm(bias, features, weights[identity])
+        else:
+            out = features.new_zeros(n_out, weight.shape[2]) if bias is None else bias.expand(n_out, -1).clone()
         for k, (i, o) in enumerate(kmap):
             if i is not None and len(i):
                 out.index_add_(0, o, features.index_select(0, i) @ weights[k])
@@ -228,7 +233,7 @@ class _SparseConvFunction(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_out: torch.Tensor):
         features, weight = ctx.saved_tensors
-        need_f, need_w = ctx.needs_input_grad[:2]
+        need_f, need_w, need_b = ctx.needs_input_grad[:3]
         grad_f = torch.zeros_like(features) if need_f else None
         grad_w = torch.zeros_like(weight) if need_w else None
         for k, (i, o) in enumerate(ctx.kmap):
@@ -242,12 +247,13 @@ class _SparseConvFunction(torch.autograd.Function):
                     grad_f += g @ weight[k].T
                 else:
                     grad_f.index_add_(0, i, g @ weight[k].T)
-        return grad_f, grad_w, None, None
+        return grad_f, grad_w, grad_out.sum(0) if need_b else None, None, None
 
 
-def sparse_conv(features: torch.Tensor, weight: torch.Tensor, kmap: KernelMap, n_out: int) -> torch.Tensor:
-    """Apply ``weight`` (K, C_in, C_out) along kernel map ``kmap``; returns (n_out, C_out)."""
-    return _SparseConvFunction.apply(features, weight, kmap, n_out)
+def sparse_conv(features: torch.Tensor, weight: torch.Tensor, kmap: KernelMap, n_out: int,
+                bias: torch.Tensor | None = None) -> torch.Tensor:
+    """Apply ``weight`` (K, C_in, C_out) along kernel map ``kmap``, plus ``bias`` (C_out); returns (n_out, C_out)."""
+    return _SparseConvFunction.apply(features, weight, bias, kmap, n_out)
 
 
 def transpose_map(kmap: KernelMap) -> KernelMap:
@@ -265,9 +271,6 @@ class _SparseConvBase(nn.Module):
         self.weight = nn.Parameter(torch.randn(volume, in_ch, out_ch) * math.sqrt(2.0 / (volume * in_ch)))
         self.bias = nn.Parameter(torch.zeros(out_ch)) if bias else None
 
-    def _finish(self, out: torch.Tensor) -> torch.Tensor:
-        return out if self.bias is None else out + self.bias
-
     def extra_repr(self) -> str:
         return f"{self.in_ch}, {self.out_ch}, kernel_size={self.kernel_size}, bias={self.bias is not None}"
 
@@ -282,9 +285,11 @@ class SubmanifoldConv3d(_SparseConvBase):
 
     def forward(self, x: SparseTensor) -> SparseTensor:
         if self.kernel_size == 1:
-            return x.replace_features(self._finish(x.features @ self.weight[0]))
-        out = sparse_conv(x.features, self.weight, submanifold_map(x, self.kernel_size), len(x.coords))
-        return x.replace_features(self._finish(out))
+            weight = self.weight[0]
+            return x.replace_features(x.features @ weight if self.bias is None
+                                      else torch.addmm(self.bias, x.features, weight))
+        out = sparse_conv(x.features, self.weight, submanifold_map(x, self.kernel_size), len(x.coords), self.bias)
+        return x.replace_features(out)
 
 
 class SparseConv3d(_SparseConvBase):
@@ -298,8 +303,8 @@ class SparseConv3d(_SparseConvBase):
 
     def forward(self, x: SparseTensor) -> SparseTensor:
         coarse = parent_coords(x)
-        out = sparse_conv(x.features, self.weight, downsample_map(x, self.kernel_size), len(coarse))
-        return SparseTensor(self._finish(out), coarse, 2 * x.stride, x.cache)
+        out = sparse_conv(x.features, self.weight, downsample_map(x, self.kernel_size), len(coarse), self.bias)
+        return SparseTensor(out, coarse, 2 * x.stride, x.cache)
 
 
 class SparseConvTranspose3d(_SparseConvBase):
@@ -318,8 +323,8 @@ class SparseConvTranspose3d(_SparseConvBase):
         kmap = downsample_map(fine, self.kernel_size, x.coords)
         if fine.cache[("down", fine.stride, self.kernel_size)][1] != len(x.coords):
             raise ValueError("x is not the downsampling of target: its voxel count differs from the map's")
-        out = sparse_conv(x.features, self.weight, transpose_map(kmap), len(target.coords))
-        return target.replace_features(self._finish(out))
+        out = sparse_conv(x.features, self.weight, transpose_map(kmap), len(target.coords), self.bias)
+        return target.replace_features(out)
 
 
 class SparseBatchNorm(nn.BatchNorm1d):

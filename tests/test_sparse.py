@@ -200,7 +200,9 @@ def test_gradcheck_float64():
     for kmap, n_in, n_out in cases:
         feats = torch.randn(n_in, 2, dtype=torch.float64, requires_grad=True)
         weight = torch.randn(len(kmap), 2, 3, dtype=torch.float64, requires_grad=True)
+        bias = torch.randn(3, dtype=torch.float64, requires_grad=True)
         assert torch.autograd.gradcheck(lambda f, w: sparse_conv(f, w, kmap, n_out), (feats, weight))
+        assert torch.autograd.gradcheck(lambda f, w, b: sparse_conv(f, w, kmap, n_out, b), (feats, weight, bias))
 
 
 def test_no_wraparound_at_the_edges_of_the_packable_range():

@@ -245,6 +245,32 @@ def test_network_runs_on_any_device_and_predicts_five_values():
         assert cuda_out.shape == (len(coords), 5)
 
 
+def test_batch_norms_folded_for_inference_give_the_same_outputs_and_follow_training():
+    from perception.model import fold_batch_norms, inference_model
+    from perception.sparse import SparseBatchNorm
+
+    torch.manual_seed(3)
+    model = MushroomNet(replace(PRESETS["slim-no"], channels=(8, 8, 8, 8), up_channels=(8, 8, 8, 8)))
+    norms = [m for m in model.modules() if isinstance(m, SparseBatchNorm)]
+    with torch.no_grad():
+        for norm in norms:  # statistics and affine terms far from a fresh norm's identity
+            norm.running_mean.uniform_(-1, 1), norm.running_var.uniform_(0.2, 3)
+            norm.weight.uniform_(0.5, 2), norm.bias.uniform_(-1, 1)
+    coords = torch.unique(torch.randint(0, 12, (300, 3)), dim=0)
+    coords = torch.cat([torch.zeros(len(coords), 1, dtype=torch.int64), coords], 1)
+    features = torch.randn(len(coords), model.config.in_channels)
+    with torch.no_grad():
+        expected = model.eval()(SparseTensor(features, coords))
+        folded = fold_batch_norms(model)
+        assert not any(isinstance(m, SparseBatchNorm) for m in folded.modules()) and len(norms) == 21
+        torch.testing.assert_close(folded(SparseTensor(features, coords)), expected, rtol=1e-5, atol=1e-5)
+        assert inference_model(model) is inference_model(model)
+        norms[0].running_mean.add_(0.5)  # what a training step does to the statistics
+        moved = model(SparseTensor(features, coords))
+        assert not torch.allclose(moved, expected)
+        torch.testing.assert_close(inference_model(model)(SparseTensor(features, coords)), moved, rtol=1e-5, atol=1e-5)
+
+
 def test_normal_features_follow_the_surface_and_point_up():
     from perception.cap import cap_rotation
     from perception.model import voxel_features
