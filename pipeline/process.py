@@ -11,6 +11,8 @@ LARGEST_HEAP_BLOCK = 32 << 20
 """Bytes: blocks up to this size come from the heap, not from a fresh mmap (glibc's ceiling on 64-bit)."""
 KEPT_FREE_BYTES = 256 << 20
 """Freed heap memory kept for reuse before any is returned to the kernel."""
+HEAP_GROWTH_BYTES = 16 << 20
+"""Extra room asked of the kernel whenever the heap grows, so that it grows in few steps."""
 
 
 def reuse_freed_memory() -> bool:
@@ -26,4 +28,4 @@ def reuse_freed_memory() -> bool:
         return False
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
     return all(mallopt(option, value) == 1 for option, value in (
-        (_M_MMAP_THRESHOLD, LARGEST_HEAP_BLOCK), (_M_TRIM_THRESHOLD, KEPT_FREE_BYTES), (_M_TOP_PAD, 16 << 20)))
+        (_M_MMAP_THRESHOLD, LARGEST_HEAP_BLOCK), (_M_TRIM_THRESHOLD, KEPT_FREE_BYTES), (_M_TOP_PAD, HEAP_GROWTH_BYTES)))
