@@ -21,6 +21,7 @@ import numpy as np
 import rerun as rr
 import torch
 import torch.nn.functional as F
+from torch.optim.swa_utils import AveragedModel
 from tqdm import tqdm
 
 from perception.cap import cap_rotation
@@ -49,6 +50,10 @@ class TrainConfig:
     """Weight cap voxels so that every cap counts the same in the existence and orientation losses,
     whatever its size: the caps the model misses or tilts wrongly are the small ones, a few voxels each.
     The orientation loss is then over cap voxels only, as with ``orientation_on_caps``."""
+    average_from: float | None = None
+    """From this fraction of the run on, keep the running mean of the weights after every step (and of
+    the batch-norm statistics alike): stochastic weight averaging (Izmailov et al. 2018). The run's
+    model.pt is then the mean, and validation reads it."""
     init_weights: str | None = None
     """Start from these weights (a model.pt) instead of random ones: fine-tuning with a new loss."""
     network: str = "slim"
@@ -279,6 +284,8 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
     milestones = [int(f * config.iterations) for f in config.milestones]
     scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, milestones, config.gamma)
+    averaged = AveragedModel(model, use_buffers=True) if config.average_from is not None else None
+    average_start = None if averaged is None else int(config.average_from * config.iterations)
     start, elapsed_before = 0, 0.0
     if resume:
         state = _load_checkpoint(checkpoint_path, device)
@@ -292,6 +299,8 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
         optimizer.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["scheduler"])
         torch.set_rng_state(state["torch_rng"])
+        if averaged is not None:
+            averaged.load_state_dict(state["average"])
         start, elapsed_before = state["iteration"], state["elapsed_s"]
         init = state.get("init")
     else:
@@ -326,6 +335,10 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
 
     saved_at = start if resume else None
 
+    def shipped_model() -> MushroomNet:
+        """What model.pt will hold: the weights' running mean once it has begun."""
+        return averaged.module if averaged is not None and averaged.n_averaged > 0 else model
+
     def save(iteration: int) -> None:
         nonlocal saved_at
         if not _all_finite(model):
@@ -334,7 +347,8 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
                       "scheduler": scheduler.state_dict(), "torch_rng": torch.get_rng_state(),
                       "iteration": iteration, "elapsed_s": elapsed_before + time.perf_counter() - session_start,
                       "train_config": config.to_dict(), "network": network_config.to_dict(), "init": init,
-                      "inference_zoom": model.inference_zoom},
+                      "inference_zoom": model.inference_zoom,
+                      "average": None if averaged is None else averaged.state_dict()},
                      checkpoint_path)
         saved_at = iteration
 
@@ -362,6 +376,8 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
             terms["total"].backward()
             optimizer.step()
             scheduler.step()
+            if averaged is not None and iteration + 1 > average_start:
+                averaged.update_parameters(model)
             values = {k: v.item() for k, v in terms.items()}
             row = [iteration + 1, scheduler.get_last_lr()[0], values["total"], values["existence"],
                    values["residual"], values["orientation"],
@@ -372,7 +388,7 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
                     rec.log(f"stats/loss/{name}", rr.Scalars(value))
             metrics = {}
             if validation is not None and (iteration + 1) % config.validate_every == 0:
-                metrics = validate(model, validation)
+                metrics = validate(shipped_model(), validation)
                 tqdm.write(f"iteration {iteration + 1}: val AP@25 {metrics['ap25']:.3f}  AP@50 {metrics['ap50']:.3f}  "
                            f"angle {metrics['angle_deg']:.2f} deg  scale err {metrics['scale_err']:.3f}")
                 if rec is not None:
@@ -398,6 +414,9 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
     weights = run_dir / "model.pt"
     state = torch.load(checkpoint_path, map_location="cpu", weights_only=False)
     model.load_state_dict(state["model"])
+    if averaged is not None:
+        averaged.load_state_dict(state["average"])
+        model.load_state_dict(shipped_model().state_dict())
     meta = {"train_config": state["train_config"], "iterations": state["iteration"],
             "train_seconds": state["elapsed_s"], "total_iterations": state["iteration"],
             "total_train_seconds": state["elapsed_s"]}

@@ -208,7 +208,7 @@ def train_config(args: argparse.Namespace):
                        validation_scenes=args.validation_scenes, weight_existence=args.weight_existence,
                        weight_residual=args.weight_residual, weight_orientation=args.weight_orientation,
                        orientation_on_caps=args.orientation_on_caps, cap_balance=args.cap_balance,
-                       scale_jitter=tuple(args.scale_jitter),
+                       scale_jitter=tuple(args.scale_jitter), average_from=args.average_from,
                        scene=SceneConfig(voxel=args.spacing or SceneConfig.voxel),
                        init_weights=str(Path(args.init).resolve()) if args.init else None)
 
@@ -226,6 +226,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise CliError(f"--scale-jitter wants LOW HIGH with LOW <= HIGH, got {low} {high}")
     if any(later <= earlier for earlier, later in zip(args.milestones, args.milestones[1:])):
         raise CliError(f"--milestones must increase, got {' '.join(map(str, args.milestones))}")
+    if args.average_from is not None and int(args.average_from * args.iterations) >= args.iterations:
+        raise CliError(f"--average-from {args.average_from} leaves no iteration of {args.iterations} to average")
     new_folder = not Path(args.out).exists()
     run_dir = _writable_dir(args.out)
     if (run_dir / "checkpoint.pt").exists() and not args.resume:
@@ -506,6 +508,9 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--lr", type=_learning_rate, default=1e-3, help="Adam learning rate, at most 1 (default 1e-3)")
     train.add_argument("--milestones", type=_run_fraction, nargs="+", default=[0.6, 0.85], metavar="FRACTION",
                        help="fractions of --iterations where the learning rate drops tenfold (default 0.6 0.85)")
+    train.add_argument("--average-from", type=_run_fraction, metavar="FRACTION",
+                       help="from this fraction of --iterations on, average the weights after every step "
+                            "(stochastic weight averaging); model.pt is the average (default: the last weights)")
     train.add_argument("--network", default="slim-no", help="network preset: slim-no (default, the shipped "
                        "model's: slim U-Net fed normals and each centroid's place in its voxel), slim-n (normals "
                        "only), slim (occupancy only, as the paper), wide-no (slim-no with wider coarse levels), "

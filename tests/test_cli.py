@@ -70,15 +70,17 @@ def test_train_flags_set_the_loss_weights_and_defaults_are_the_papers():
     default = train_config(parse(["train", "--out", "RUN"]))
     paper = TrainConfig()
     assert (default.weight_existence, default.weight_residual, default.weight_orientation,
-            default.orientation_on_caps, default.cap_balance, default.scale_jitter, default.milestones) == (
+            default.orientation_on_caps, default.cap_balance, default.scale_jitter, default.milestones,
+            default.average_from) == (
         paper.weight_existence, paper.weight_residual, paper.weight_orientation, paper.orientation_on_caps,
-        paper.cap_balance, paper.scale_jitter, paper.milestones)
+        paper.cap_balance, paper.scale_jitter, paper.milestones, paper.average_from)
     tuned = train_config(parse(["train", "--out", "RUN", "--weight-existence", "2", "--weight-residual", "50",
                                 "--weight-orientation", "10", "--orientation-on-caps", "--cap-balance",
-                                "--scale-jitter", "1.0", "1.2", "--milestones", "0.75", "0.9"]))
+                                "--scale-jitter", "1.0", "1.2", "--milestones", "0.75", "0.9",
+                                "--average-from", "0.5"]))
     assert (tuned.weight_existence, tuned.weight_residual, tuned.weight_orientation, tuned.orientation_on_caps,
-            tuned.cap_balance, tuned.scale_jitter, tuned.milestones) == (2.0, 50.0, 10.0, True, True, (1.0, 1.2),
-                                                                         (0.75, 0.9))
+            tuned.cap_balance, tuned.scale_jitter, tuned.milestones, tuned.average_from) == (
+        2.0, 50.0, 10.0, True, True, (1.0, 1.2), (0.75, 0.9), 0.5)
     assert default.scene == paper.scene
     from perception.detect import DEFAULT_WEIGHTS
     from perception.model import INFERENCE_ZOOM
@@ -113,6 +115,14 @@ def test_milestones_out_of_order_give_one_line_and_exit_2(tmp_path):
     assert result.returncode != 0 and "Traceback" not in result.stderr
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "--milestones must increase" in lines[0], result.stderr
+    assert not (tmp_path / "run").exists()
+
+
+def test_averaging_that_leaves_no_iteration_gives_one_line_and_exit_2(tmp_path):
+    result = run("train", "--out", str(tmp_path / "run"), "--iterations", "10", "--average-from", "1")
+    assert result.returncode != 0 and "Traceback" not in result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--average-from 1.0 leaves no iteration" in lines[0], result.stderr
     assert not (tmp_path / "run").exists()
 
 

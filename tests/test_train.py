@@ -321,3 +321,25 @@ def test_a_checkpoint_from_before_a_new_flag_resumes_with_its_default(tmp_path, 
     with pytest.raises(ValueError, match="different configuration"):
         train(TrainConfig(**{**config.__dict__, "orientation_on_caps": True}), tmp_path, resume=True,
               progress=False, rerun=False)
+
+
+def test_weight_averaging_ships_the_mean_of_the_last_steps_and_resumes_exactly(tmp_path, tiny_network):
+    plain = TrainConfig(iterations=4, network=tiny_network, checkpoint_every=1, validation_scenes=0,
+                        scene=SMALL_SCENES, queue_size=2)
+    steps = []
+    for stop in (2, 3, 4):
+        train(plain, tmp_path / "plain", resume=stop > 2, progress=False, rerun=False, stop_at=stop)
+        steps.append(torch.load(tmp_path / "plain" / "checkpoint.pt", weights_only=False)["model"])
+    averaging = replace(plain, average_from=0.5)
+    straight, _ = load_weights(train(averaging, tmp_path / "straight", progress=False, rerun=False))
+    assert train(averaging, tmp_path / "resumed", progress=False, rerun=False, stop_at=3) is None
+    resumed, _ = load_weights(train(averaging, tmp_path / "resumed", resume=True, progress=False, rerun=False))
+    averaged_any = False
+    for name, value in straight.state_dict().items():
+        if not value.is_floating_point():
+            continue
+        mean = (steps[1][name] + steps[2][name]) / 2
+        torch.testing.assert_close(value, mean, rtol=0, atol=1e-6)
+        torch.testing.assert_close(resumed.state_dict()[name], value, rtol=0, atol=0)
+        averaged_any |= not torch.allclose(mean, steps[2][name], atol=1e-6)
+    assert averaged_any
