@@ -71,6 +71,11 @@ class TrainConfig:
     """Standard deviation (metres) of Gaussian jitter on the points."""
     scene: SceneConfig = field(default_factory=SceneConfig)
 
+    @property
+    def averaging_start(self) -> int | None:
+        """The iteration after which each step joins the weights' mean (None: no averaging)."""
+        return None if self.average_from is None else int(self.average_from * self.iterations)
+
     def to_dict(self) -> dict:
         values = asdict(self)
         values["scene"] = {k: v for k, v in values["scene"].items() if k != "sensor"}
@@ -285,7 +290,6 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
     milestones = [int(f * config.iterations) for f in config.milestones]
     scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, milestones, config.gamma)
     averaged = AveragedModel(model, use_buffers=True) if config.average_from is not None else None
-    average_start = None if averaged is None else int(config.average_from * config.iterations)
     start, elapsed_before = 0, 0.0
     if resume:
         state = _load_checkpoint(checkpoint_path, device)
@@ -376,7 +380,7 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
             terms["total"].backward()
             optimizer.step()
             scheduler.step()
-            if averaged is not None and iteration + 1 > average_start:
+            if averaged is not None and iteration + 1 > config.averaging_start:
                 averaged.update_parameters(model)
             values = {k: v.item() for k, v in terms.items()}
             row = [iteration + 1, scheduler.get_last_lr()[0], values["total"], values["existence"],

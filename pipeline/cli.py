@@ -226,13 +226,13 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise CliError(f"--scale-jitter wants LOW HIGH with LOW <= HIGH, got {low} {high}")
     if any(later <= earlier for earlier, later in zip(args.milestones, args.milestones[1:])):
         raise CliError(f"--milestones must increase, got {' '.join(map(str, args.milestones))}")
-    if args.average_from is not None and int(args.average_from * args.iterations) >= args.iterations:
+    config = train_config(args)
+    if config.averaging_start is not None and config.averaging_start >= config.iterations:
         raise CliError(f"--average-from {args.average_from} leaves no iteration of {args.iterations} to average")
     new_folder = not Path(args.out).exists()
     run_dir = _writable_dir(args.out)
     if (run_dir / "checkpoint.pt").exists() and not args.resume:
         raise CliError(f"{run_dir} already holds a checkpoint: add --resume to continue it, or pick a new --out")
-    config = train_config(args)
     torch_threads(args.threads)
     try:
         weights = train(config, run_dir, resume=args.resume, device=args.device, progress=not args.quiet,
