@@ -443,7 +443,51 @@ def _provenance(path: Path, meta: dict) -> dict:
     seconds = meta.get("total_train_seconds", meta.get("train_seconds", meta.get("elapsed_s", 0.0)))
     return {"path": str(path), "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
             "total_iterations": int(iterations or 0), "total_train_seconds": float(seconds or 0.0),
-            "train_config": meta.get("train_config"), "init": meta.get("init")}
+            "train_config": meta.get("train_config"), "init": meta.get("init"), "runs": meta.get("runs")}
+
+
+def _runs(node: dict) -> dict[str, list]:
+    """Every training run behind a weights file (a ``_provenance`` node): [seconds, iterations] by the
+    SHA-256 of the file the run made. An averaged model lists its runs itself."""
+    if node.get("runs"):
+        return {sha: list(cost) for sha, cost in node["runs"].items()}
+    parent = node.get("init")
+    behind = _runs(parent) if parent else {}
+    own = [node["total_train_seconds"] - (parent["total_train_seconds"] if parent else 0.0),
+           node["total_iterations"] - (parent["total_iterations"] if parent else 0)]
+    return {**behind, node["sha256"]: own}
+
+
+def average_weights(paths: list[Path]) -> tuple[MushroomNet, dict]:
+    """The mean of the weights and batch-norm statistics of models fine-tuned from one start (a "model
+    soup", Wortsman et al. 2022): runs that share a start stay in one basin of the loss, where the mean
+    of their weights is a model better than either, read at no extra cost; runs from separate starts do
+    not, so they are refused. The mean's training cost is every run behind it, a shared one counted once."""
+    if len(paths) < 2:
+        raise ValueError("averaging needs two weights files or more")
+    loaded = [load_weights(Path(path)) for path in paths]
+    first = loaded[0][0]
+    for path, (model, _) in zip(paths[1:], loaded[1:]):
+        if model.config != first.config or model.point_spacing != first.point_spacing:
+            raise ValueError(f"{path} holds a different network than {paths[0]}; only models of one network average")
+        if model.inference_zoom != first.inference_zoom:
+            raise ValueError(f"{path} is read at zoom {model.inference_zoom}, {paths[0]} at {first.inference_zoom}")
+    nodes = [_provenance(Path(path), meta) for path, (_, meta) in zip(paths, loaded)]
+    runs = [_runs(node) for node in nodes]
+    if not set.intersection(*(set(behind) for behind in runs)):
+        raise ValueError(f"{' and '.join(map(str, paths))} were not trained from one start: the weights of "
+                         "separate runs do not average into a working model")
+    states = [model.state_dict() for model, _ in loaded]
+    mean = {name: torch.stack([state[name] for state in states]).mean(0) if value.is_floating_point()
+            else torch.stack([state[name] for state in states]).amax(0) for name, value in states[0].items()}
+    model = MushroomNet(first.config, point_spacing=first.point_spacing, inference_zoom=first.inference_zoom)
+    model.load_state_dict(mean)
+    model.eval()
+    every_run = {sha: cost for behind in runs for sha, cost in behind.items()}
+    seconds, iterations = (sum(cost[i] for cost in every_run.values()) for i in (0, 1))
+    meta = {"averaged": nodes, "runs": every_run, "iterations": int(iterations), "train_seconds": float(seconds),
+            "total_iterations": int(iterations), "total_train_seconds": float(seconds)}
+    return model, meta
 
 
 UNRECORDED_ZOOM = 1.1

@@ -249,6 +249,23 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_average(args: argparse.Namespace) -> int:
+    from perception.train import average_weights, save_weights
+
+    for path in args.weights:
+        if not Path(path).is_file():
+            raise CliError(f"no weights file at {path}")
+    out = _writable_file(args.out, inputs=tuple(args.weights), suffix=".pt")
+    try:
+        model, meta = average_weights([Path(path) for path in args.weights])
+    except ValueError as error:
+        raise CliError(str(error)) from None
+    save_weights(model, out, **meta)
+    print(f"averaged {len(args.weights)} models, {len(meta['runs'])} training runs behind them, "
+          f"{meta['total_iterations']} iterations in {meta['total_train_seconds'] / 60:.1f} min: {out}")
+    return 0
+
+
 def torch_threads(threads: int | None) -> None:
     import torch
 
@@ -545,6 +562,12 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--threads", type=_threads, help="torch threads (default: all cores)")
     train.add_argument("--quiet", action="store_true", help="no progress bar")
     train.set_defaults(run=cmd_train)
+
+    average = sub.add_parser("average", help="average the weights of models fine-tuned from one start "
+                             "(a model soup; the shipped model is one)")
+    average.add_argument("weights", nargs="+", help="two or more model.pt files that share a start (--init)")
+    average.add_argument("--out", required=True, help="the weights file (.pt) to write")
+    average.set_defaults(run=cmd_average)
 
     detect = sub.add_parser("detect", help="find caps in a point cloud (.ply, .pcd, .npz)")
     detect.add_argument("cloud", help="the point cloud file")

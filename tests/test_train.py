@@ -343,3 +343,39 @@ def test_weight_averaging_ships_the_mean_of_the_last_steps_and_resumes_exactly(t
         torch.testing.assert_close(resumed.state_dict()[name], value, rtol=0, atol=0)
         averaged_any |= not torch.allclose(mean, steps[2][name], atol=1e-6)
     assert averaged_any
+
+
+def test_averaging_runs_from_one_start_gives_their_mean_and_counts_the_start_once(tmp_path, tiny_network, capsys):
+    from pipeline.cli import main
+    from perception.train import average_weights
+
+    base_config = TrainConfig(iterations=2, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
+    base = train(base_config, tmp_path / "base", progress=False, rerun=False)
+    tuned = [train(TrainConfig(**{**base_config.__dict__, "seed": seed, "init_weights": str(base)}),
+                   tmp_path / f"tuned{seed}", progress=False, rerun=False) for seed in (1, 2)]
+    metas = [load_weights(path)[1] for path in (base, *tuned)]
+    states = [load_weights(path)[0].state_dict() for path in tuned]
+    model, meta = average_weights(tuned)
+    for name, value in model.state_dict().items():
+        if value.is_floating_point():
+            torch.testing.assert_close(value, (states[0][name] + states[1][name]) / 2, rtol=0, atol=1e-7)
+    weight = next(k for k, v in states[0].items() if v.dim() == 3)
+    assert not torch.equal(states[0][weight], states[1][weight])
+    assert meta["total_iterations"] == 6 and len(meta["runs"]) == 3
+    assert meta["total_train_seconds"] == pytest.approx(sum(m["train_seconds"] for m in metas))
+    assert average_weights([base, tuned[0]])[1]["total_iterations"] == 4  # a start and a run from it
+
+    out = tmp_path / "soup.pt"
+    assert main(["average", *map(str, tuned), "--out", str(out)]) == 0
+    soup, soup_meta = load_weights(out)
+    assert soup_meta["total_train_seconds"] == pytest.approx(meta["total_train_seconds"])
+    fine_tuned_soup = train(TrainConfig(**{**base_config.__dict__, "seed": 3, "init_weights": str(out)}),
+                            tmp_path / "after", progress=False, rerun=False)
+    assert load_weights(fine_tuned_soup)[1]["total_iterations"] == 8
+
+    separate = train(TrainConfig(**{**base_config.__dict__, "seed": 9}), tmp_path / "separate", progress=False,
+                     rerun=False)
+    capsys.readouterr()
+    assert main(["average", str(tuned[0]), str(separate), "--out", str(tmp_path / "bad.pt")]) == 2
+    assert "not trained from one start" in capsys.readouterr().err
+    assert not (tmp_path / "bad.pt").exists()
