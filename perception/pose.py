@@ -196,10 +196,11 @@ def refine_axes(points: np.ndarray, orientation: np.ndarray, lab: np.ndarray, ce
     semi-axes may differ, as on real caps (and the synthetic ones, per-axis factors 0.8-1.2); a surface
     of revolution fitted to an oval cap tilts its axis. The residual of a point is its radial distance
     to the surface, (rho - 1) times the mean base semi-axis, rho^2 = sum_i (q_i / a_i)^2 in the cap
-    frame q, reweighted towards L1 and zero beyond ``SURFACE_OUTLIER_DISTANCE``; beside it, ``SURFACE_ENCODING_WEIGHT`` times the encoding's miss
-    along the axis, q_z - y a_z. Steps are bounded (0.45 rad, 6 mm, 20 % in size), and a fit that has
-    turned a flat, half-seen dome over fails the height-ratio gate. Only the axis is kept: the fitted
-    centre and semi-axes are worse than the encoding's on small caps.
+    frame q, reweighted towards L1 and zero for a point ``SURFACE_OUTLIER_FACTOR`` median distances off;
+    beside it, ``SURFACE_ENCODING_WEIGHT`` times the encoding's miss along the axis, q_z - y a_z. Steps
+    are bounded (0.45 rad, 6 mm, 20 % in size), and a fit that has turned a flat, half-seen dome over
+    fails the height-ratio gate. Only the axis is kept: the fitted centre and semi-axes are worse than
+    the encoding's on small caps.
     """
     k = len(centers)
     counts = np.bincount(lab, minlength=k)
@@ -238,7 +239,7 @@ def refine_axes(points: np.ndarray, orientation: np.ndarray, lab: np.ndarray, ce
         miss = rho - 1.0
         surface = miss * mean_radius
         distance = np.abs(surface)
-        cut = SURFACE_OUTLIER_FACTOR * np.median(distance[real > 0])
+        cut = SURFACE_OUTLIER_FACTOR * np.median(distance.reshape(-1)[cell])
         weight = (real * (distance < cut)) * np.sqrt(SURFACE_L1_SCALE / np.maximum(distance, SURFACE_L1_SCALE))
         np.multiply(weight, surface, out=surface_rows[:, 9])
         # minus the weighted gradient of the residual by the point in the cap frame

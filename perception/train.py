@@ -462,7 +462,8 @@ def average_weights(paths: list[Path]) -> tuple[MushroomNet, dict]:
     """The mean of the weights and batch-norm statistics of models fine-tuned from one start (a "model
     soup", Wortsman et al. 2022): runs that share a start stay in one basin of the loss, where the mean
     of their weights is a working model, often better than either, read at no extra cost (the shipped
-    model is one: MODEL_CARD.md); runs from separate starts do not, so they are refused. The mean's training cost is every run behind it, a shared one counted once."""
+    model is one: MODEL_CARD.md); runs from separate starts do not, so they are refused. The mean's
+    training cost is every run behind it, a shared one counted once."""
     if len(paths) < 2:
         raise ValueError("averaging needs two weights files or more")
     loaded = [load_weights(Path(path)) for path in paths]
@@ -478,8 +479,9 @@ def average_weights(paths: list[Path]) -> tuple[MushroomNet, dict]:
         raise ValueError(f"{' and '.join(map(str, paths))} were not trained from one start: the weights of "
                          "separate runs do not average into a working model")
     states = [model.state_dict() for model, _ in loaded]
-    mean = {name: torch.stack([state[name] for state in states]).mean(0) if value.is_floating_point()
-            else torch.stack([state[name] for state in states]).amax(0) for name, value in states[0].items()}
+    stacked = {name: torch.stack([state[name] for state in states]) for name in states[0]}
+    # integer buffers are batch-norm step counts: the largest stands for the mean model's
+    mean = {name: values.mean(0) if values.is_floating_point() else values.amax(0) for name, values in stacked.items()}
     model = MushroomNet(first.config, point_spacing=first.point_spacing, inference_zoom=first.inference_zoom)
     model.load_state_dict(mean)
     model.eval()

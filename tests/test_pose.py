@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from perception.cap import CAP_HEIGHT_RATIO, axis_to_angles, cap_rotation, rotation_from_axis
 from perception import pose
+from perception.cap import CAP_HEIGHT_RATIO, axis_to_angles, cap_rotation, rotation_from_axis
 from perception.pose import fit_caps
 
 
