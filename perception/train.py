@@ -26,7 +26,8 @@ from tqdm import tqdm
 
 from perception.cap import cap_rotation
 from perception.encoding import encode
-from perception.model import LENGTH_UNIT, PRESETS as NETWORK_PRESETS, MushroomNet, NetworkConfig, voxel_features
+from perception.model import (INFERENCE_ZOOM, LENGTH_UNIT, PRESETS as NETWORK_PRESETS, MushroomNet,
+                              NetworkConfig, voxel_features)
 from perception.sparse import SparseTensor
 from perception.synthetic.scene import SceneConfig, generate_scene
 
@@ -56,6 +57,10 @@ class TrainConfig:
     model.pt is then the mean, and validation reads it."""
     init_weights: str | None = None
     """Start from these weights (a model.pt) instead of random ones: fine-tuning with a new loss."""
+    zoom: float | None = None
+    """The zoom the model is read at (``MushroomNet.inference_zoom``): its weights record it and
+    validation reads at it. It belongs with ``scale_jitter``: a network trained on beds scaled by
+    1.05-1.35 is read at 1.2. None: ``INFERENCE_ZOOM``, for the default jitter."""
     network: str = "slim"
     seed: int = 0
     checkpoint_every: int = 200
@@ -277,7 +282,8 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
     run_dir.mkdir(parents=True, exist_ok=True)
     network_config = NETWORK_PRESETS[config.network]
     torch.manual_seed(config.seed)
-    model = MushroomNet(network_config, point_spacing=config.scene.voxel).to(device)
+    model = MushroomNet(network_config, point_spacing=config.scene.voxel,
+                        inference_zoom=config.zoom or INFERENCE_ZOOM).to(device)
     init = None
     if config.init_weights and not resume:
         initial, base = load_weights(Path(config.init_weights), device)

@@ -136,8 +136,10 @@ _spacing = _at_least(_at_most(_positive(float), 0.02, " metres (0.003 is 3 mm)")
                      " metres: a finer spacing only multiplies the points (0.003 is 3 mm)")
 SPACING_HELP = "0.003, the generator's: every 4.5 mm voxel a surface crosses holds a point"
 """The parser imports no numpy (Ctrl-C while libraries load), so SceneConfig's default is named here."""
-SHIPPED_ZOOM = 1.05
+DEFAULT_ZOOM = 1.05
 """perception.model.INFERENCE_ZOOM, named here for the same reason."""
+SHIPPED_ZOOM = 1.2
+"""The zoom the shipped model's weights record (trained with --scale-jitter 1.05 1.35)."""
 _zoom = _at_least(_at_most(_positive(float), 2.0, " (the network would read caps twice their size)"), 0.5,
                   " (the network would read caps half their size)")
 
@@ -208,7 +210,7 @@ def train_config(args: argparse.Namespace):
                        validation_scenes=args.validation_scenes, weight_existence=args.weight_existence,
                        weight_residual=args.weight_residual, weight_orientation=args.weight_orientation,
                        orientation_on_caps=args.orientation_on_caps, cap_balance=args.cap_balance,
-                       scale_jitter=tuple(args.scale_jitter), average_from=args.average_from,
+                       scale_jitter=tuple(args.scale_jitter), average_from=args.average_from, zoom=args.zoom,
                        scene=SceneConfig(voxel=args.spacing or SceneConfig.voxel),
                        init_weights=str(Path(args.init).resolve()) if args.init else None)
 
@@ -550,8 +552,11 @@ def build_parser() -> argparse.ArgumentParser:
                        help="weigh cap voxels so every cap counts the same in the existence and orientation losses, "
                             "whatever its size (orientation then on caps only)")
     train.add_argument("--scale-jitter", type=_positive(float), nargs=2, default=[0.9, 1.1], metavar=("LOW", "HIGH"),
-                       help="scale each training bed by a factor drawn from [LOW, HIGH] (default 0.9 1.1); "
-                            f"the shipped model reads clouds zoomed by {SHIPPED_ZOOM}")
+                       help="scale each training bed by a factor drawn from [LOW, HIGH] (default 0.9 1.1; "
+                            "the shipped model was fine-tuned at 1.05 1.35)")
+    train.add_argument("--zoom", type=_zoom, help="the scale the trained model reads clouds at, recorded in its "
+                       f"weights and used by validation (default {DEFAULT_ZOOM}, for the default jitter; the "
+                       f"shipped model's is {SHIPPED_ZOOM})")
     train.add_argument("--spacing", type=_spacing, help=f"point spacing of the training beds in metres (default "
                        f"{SPACING_HELP})")
     train.add_argument("--init", help="start from these weights (fine-tuning), e.g. perception/weights/default.pt")

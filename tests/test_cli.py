@@ -77,17 +77,18 @@ def test_train_flags_set_the_loss_weights_and_defaults_are_the_papers():
     tuned = train_config(parse(["train", "--out", "RUN", "--weight-existence", "2", "--weight-residual", "50",
                                 "--weight-orientation", "10", "--orientation-on-caps", "--cap-balance",
                                 "--scale-jitter", "1.0", "1.2", "--milestones", "0.75", "0.9",
-                                "--average-from", "0.5"]))
+                                "--average-from", "0.5", "--zoom", "1.1"]))
     assert (tuned.weight_existence, tuned.weight_residual, tuned.weight_orientation, tuned.orientation_on_caps,
-            tuned.cap_balance, tuned.scale_jitter, tuned.milestones, tuned.average_from) == (
-        2.0, 50.0, 10.0, True, True, (1.0, 1.2), (0.75, 0.9), 0.5)
+            tuned.cap_balance, tuned.scale_jitter, tuned.milestones, tuned.average_from, tuned.zoom) == (
+        2.0, 50.0, 10.0, True, True, (1.0, 1.2), (0.75, 0.9), 0.5, 1.1)
+    assert default.zoom is None
     assert default.scene == paper.scene
     from perception.detect import DEFAULT_WEIGHTS
     from perception.model import INFERENCE_ZOOM
     from perception.train import load_weights
-    from pipeline.cli import SHIPPED_ZOOM, SPACING_HELP
+    from pipeline.cli import DEFAULT_ZOOM, SHIPPED_ZOOM, SPACING_HELP
     assert SPACING_HELP.startswith(f"{paper.scene.voxel:g},")
-    assert SHIPPED_ZOOM == INFERENCE_ZOOM == load_weights(DEFAULT_WEIGHTS)[0].inference_zoom
+    assert DEFAULT_ZOOM == INFERENCE_ZOOM and SHIPPED_ZOOM == load_weights(DEFAULT_WEIGHTS)[0].inference_zoom
     spaced = train_config(parse(["train", "--out", "RUN", "--spacing", "0.004"]))
     assert spaced.scene.voxel == 0.004 and spaced.scene == type(paper.scene)(voxel=0.004)
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from perception.model import LENGTH_UNIT, PRESETS, MushroomNet, NetworkConfig
+from perception.model import INFERENCE_ZOOM, LENGTH_UNIT, PRESETS, MushroomNet, NetworkConfig
 from perception.sparse import SparseTensor
 from perception.synthetic.scene import SceneConfig
 from perception.train import (TrainConfig, TrainingError, augmented_sample, load_weights, loss_terms, train,
@@ -309,6 +309,27 @@ def test_a_time_budget_stops_with_a_resumable_checkpoint(tmp_path, tiny_network)
     config = TrainConfig(iterations=50, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
     assert train(config, tmp_path, progress=False, rerun=False, max_minutes=1e-6) is None
     assert torch.load(tmp_path / "checkpoint.pt", weights_only=False)["iteration"] < 50
+
+
+def test_the_zoom_asked_for_is_recorded_in_the_weights_and_read_at_by_validation(tmp_path, tiny_network,
+                                                                                 monkeypatch):
+    import perception.train as training
+
+    read_at = []
+
+    def validate(model, scenes):
+        read_at.append(model.inference_zoom)
+        return dict.fromkeys(("ap25", "ap50", "angle_deg", "scale_err"), 0.0)
+
+    monkeypatch.setattr(training, "validate", validate)
+    monkeypatch.setattr("perception.synthetic.dataset.load_preset", lambda *args, **kwargs: [])
+    config = TrainConfig(iterations=2, network=tiny_network, validate_every=1, validation_scenes=1,
+                         scene=SMALL_SCENES, zoom=1.2)
+    assert load_weights(train(config, tmp_path / "zoomed", progress=False, rerun=False))[0].inference_zoom == 1.2
+    assert read_at == [1.2, 1.2]
+    plain = TrainConfig(**{**config.__dict__, "zoom": None, "validation_scenes": 0})
+    assert load_weights(train(plain, tmp_path / "plain", progress=False, rerun=False))[0].inference_zoom == \
+        INFERENCE_ZOOM
 
 
 def test_a_checkpoint_from_before_a_new_flag_resumes_with_its_default(tmp_path, tiny_network):
