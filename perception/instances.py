@@ -51,8 +51,8 @@ class ClusterConfig:
     points straddle several bins, which all climb to the same centre, and scikit-learn runs each seed
     as its own Python loop, so fewer seeds were faster; since the seeds climb together (``_climb``)
     both take about as long (``bench/perception.py`` prints both). Peaks stay the default for the
-    second pass's small caps: val50 AP@25 99.64 % against 99.60 % with bins (shipped model, session
-    17)."""
+    second pass's small caps: val50 AP@25 99.64 % against 99.60 % with bins (the model shipped in
+    sessions 16-23, session 17)."""
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:

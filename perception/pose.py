@@ -17,8 +17,8 @@ shape (per-axis factors of 0.8-1.2).
 By default (``axis="surface"``) the encoding's axis is then refined by the cap's own surface: an
 ellipsoid fitted to the cluster's points, started at the encoding's pose. The encoding values are
 noisy on a cap a few voxels across, while the dome's shape pins its axis down; the encoding stays in
-the fit, weakly, to hold the axis where the visible dome alone cannot (shipped model, val50: mean
-angle 5.91 to 3.55 degrees; see ``refine_axes``).
+the fit, weakly, to hold the axis where the visible dome alone cannot (the model shipped in sessions
+9-14, val50: mean angle 5.91 to 3.55 degrees; see ``refine_axes``).
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from perception.cap import CAP_HEIGHT_RATIO, rotation_from_axis
 HEIGHT_MODES = ("free", "fixed")
 AXIS_MODES = ("surface", "encoding")
 SURFACE_ITERATIONS = 6
-"""Shipped model, val50, mean angle with ``STEP_LIMITS``: 3.74 degrees after 4 iterations, 3.61 after
+"""The model shipped in sessions 9-14, val50, mean angle with ``STEP_LIMITS``: 3.74 degrees after 4 iterations, 3.61 after
 5, 3.55 after 6; 8 iterations with the earlier, three times tighter limits gave 3.59. The figures of
 the next three settings were measured with those (session 9). The model shipped in session 16: val50
 cosine 0.99684, 0.99694, 0.99705 and 0.99710 after 4, 5, 6 and 8 iterations, and no better after 12,

@@ -283,7 +283,7 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
     network_config = NETWORK_PRESETS[config.network]
     torch.manual_seed(config.seed)
     model = MushroomNet(network_config, point_spacing=config.scene.voxel,
-                        inference_zoom=config.zoom or INFERENCE_ZOOM).to(device)
+                        inference_zoom=INFERENCE_ZOOM if config.zoom is None else config.zoom).to(device)
     init = None
     if config.init_weights and not resume:
         initial, base = load_weights(Path(config.init_weights), device)
@@ -306,6 +306,8 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
                              "resume with the same flags or use a new run folder")
         model.load_state_dict(state["model"])
         model.inference_zoom = state.get("inference_zoom", UNRECORDED_ZOOM)
+        if averaged is not None:
+            averaged.module.inference_zoom = model.inference_zoom
         optimizer.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["scheduler"])
         torch.set_rng_state(state["torch_rng"])
@@ -467,8 +469,8 @@ def _runs(node: dict) -> dict[str, list]:
 def average_weights(paths: list[Path]) -> tuple[MushroomNet, dict]:
     """The mean of the weights and batch-norm statistics of models fine-tuned from one start (a "model
     soup", Wortsman et al. 2022): runs that share a start stay in one basin of the loss, where the mean
-    of their weights is a working model, often better than either, read at no extra cost (the shipped
-    model is one: MODEL_CARD.md); runs from separate starts do not, so they are refused. The mean's
+    of their weights is a working model, often better than either, read at no extra cost (the model
+    shipped in sessions 24-25 was one: MODEL_CARD.md); runs from separate starts do not, so they are refused. The mean's
     training cost is every run behind it, a shared one counted once."""
     if len(paths) < 2:
         raise ValueError("averaging needs two weights files or more")

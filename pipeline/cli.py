@@ -559,7 +559,8 @@ def build_parser() -> argparse.ArgumentParser:
                        f"shipped model's is {SHIPPED_ZOOM})")
     train.add_argument("--spacing", type=_spacing, help=f"point spacing of the training beds in metres (default "
                        f"{SPACING_HELP})")
-    train.add_argument("--init", help="start from these weights (fine-tuning), e.g. perception/weights/default.pt")
+    train.add_argument("--init", help="start from these weights (fine-tuning), e.g. perception/weights/default.pt; "
+                       "the run is read at --zoom, not at its start's zoom")
     train.add_argument("--resume", action="store_true", help="continue the checkpoint in --out exactly")
     train.add_argument("--max-minutes", type=_positive(float),
                        help="stop cleanly with a checkpoint after this many minutes (resume later)")
@@ -569,7 +570,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.set_defaults(run=cmd_train)
 
     average = sub.add_parser("average", help="average the weights of models fine-tuned from one start "
-                             "(a model soup; the shipped model is one)")
+                             "(a model soup; the model shipped in sessions 24-25 was one)")
     average.add_argument("weights", nargs="+", help="two or more model.pt files that share a start (--init)")
     average.add_argument("--out", required=True, help="the weights file (.pt) to write")
     average.set_defaults(run=cmd_average)

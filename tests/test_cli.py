@@ -82,6 +82,9 @@ def test_train_flags_set_the_loss_weights_and_defaults_are_the_papers():
             tuned.cap_balance, tuned.scale_jitter, tuned.milestones, tuned.average_from, tuned.zoom) == (
         2.0, 50.0, 10.0, True, True, (1.0, 1.2), (0.75, 0.9), 0.5, 1.1)
     assert default.zoom is None
+    with pytest.raises(SystemExit) as refused:
+        parse(["train", "--out", "RUN", "--zoom", "3"])
+    assert refused.value.code == 2
     assert default.scene == paper.scene
     from perception.detect import DEFAULT_WEIGHTS
     from perception.model import INFERENCE_ZOOM

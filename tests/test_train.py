@@ -9,8 +9,8 @@ import torch
 from perception.model import INFERENCE_ZOOM, LENGTH_UNIT, PRESETS, MushroomNet, NetworkConfig
 from perception.sparse import SparseTensor
 from perception.synthetic.scene import SceneConfig
-from perception.train import (TrainConfig, TrainingError, augmented_sample, load_weights, loss_terms, train,
-                              voxel_targets)
+from perception.train import (UNRECORDED_ZOOM, TrainConfig, TrainingError, augmented_sample, load_weights,
+                              loss_terms, train, voxel_targets)
 
 TINY = NetworkConfig(channels=(8, 8, 8, 8), up_channels=(8, 8, 8, 8), first_kernel=3, head_hidden=(8, 8))
 SMALL_SCENES = SceneConfig(mushrooms=(3, 5))
@@ -311,8 +311,9 @@ def test_a_time_budget_stops_with_a_resumable_checkpoint(tmp_path, tiny_network)
     assert torch.load(tmp_path / "checkpoint.pt", weights_only=False)["iteration"] < 50
 
 
-def test_the_zoom_asked_for_is_recorded_in_the_weights_and_read_at_by_validation(tmp_path, tiny_network,
-                                                                                 monkeypatch):
+@pytest.fixture
+def validation_zooms(monkeypatch):
+    """The zoom of every model that training validates (on no scenes: only the reading matters)."""
     import perception.train as training
 
     read_at = []
@@ -323,13 +324,32 @@ def test_the_zoom_asked_for_is_recorded_in_the_weights_and_read_at_by_validation
 
     monkeypatch.setattr(training, "validate", validate)
     monkeypatch.setattr("perception.synthetic.dataset.load_preset", lambda *args, **kwargs: [])
+    return read_at
+
+
+def test_the_zoom_asked_for_is_recorded_in_the_weights_and_read_at_by_validation(tmp_path, tiny_network,
+                                                                                 validation_zooms):
     config = TrainConfig(iterations=2, network=tiny_network, validate_every=1, validation_scenes=1,
                          scene=SMALL_SCENES, zoom=1.2)
     assert load_weights(train(config, tmp_path / "zoomed", progress=False, rerun=False))[0].inference_zoom == 1.2
-    assert read_at == [1.2, 1.2]
+    assert validation_zooms == [1.2, 1.2]
     plain = TrainConfig(**{**config.__dict__, "zoom": None, "validation_scenes": 0})
     assert load_weights(train(plain, tmp_path / "plain", progress=False, rerun=False))[0].inference_zoom == \
         INFERENCE_ZOOM
+
+
+def test_a_resumed_averaging_run_validates_and_ships_at_the_zoom_its_checkpoint_records(tmp_path, tiny_network,
+                                                                                       validation_zooms):
+    config = TrainConfig(iterations=3, network=tiny_network, checkpoint_every=1, validate_every=1,
+                         validation_scenes=1, scene=SMALL_SCENES, average_from=0.3)
+    train(config, tmp_path, progress=False, rerun=False, stop_at=2)
+    state = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    del state["inference_zoom"]  # as saved before session 16, read at UNRECORDED_ZOOM
+    torch.save(state, tmp_path / "checkpoint.pt")
+    validation_zooms.clear()
+    weights = train(config, tmp_path, resume=True, progress=False, rerun=False)
+    assert validation_zooms == [UNRECORDED_ZOOM] and load_weights(weights)[0].inference_zoom == UNRECORDED_ZOOM
+    assert UNRECORDED_ZOOM != INFERENCE_ZOOM
 
 
 def test_a_checkpoint_from_before_a_new_flag_resumes_with_its_default(tmp_path, tiny_network):
