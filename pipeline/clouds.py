@@ -113,12 +113,17 @@ def _check_ply(path: Path) -> np.ndarray | None:
     if formats[0] == "ascii":
         with open(path, "rb") as file:
             file.seek(header_bytes)
-            values = file.read().split()
+            data = file.read()
+        values = data.split()
         if len(values) < vertices * len(names):
             raise ValueError(f"{path} is cut short: its header lists {vertices} points of {len(names)} values "
                              f"but the file holds {len(values)} values")
         if elements == 1 and {"x", "y", "z"} <= set(names):
-            return _ascii_xyz(path, values[:vertices * len(names)], names)
+            vertex_values = values[:vertices * len(names)]
+            xyz = _ascii_xyz(path, vertex_values, names)
+            _refuse_nonfinite(path, xyz)
+            _refuse_what_open3d_cannot_read(path, data, vertex_values, names)
+            return xyz
         return None
     needed = header_bytes + vertices * record
     if path.stat().st_size < needed:
@@ -145,10 +150,23 @@ def _is_number(value: bytes) -> bool:
         return False
 
 
+def _refuse_what_open3d_cannot_read(path: Path, data: bytes, values: list[bytes], names: list[str]) -> None:
+    """ValueError naming the first value that Python reads but Open3D's PLY reader stops at ("inf" in
+    any column, "1_0"). Open3D leaves the points after it unread, holding whatever memory held: after an
+    earlier read of a like file, the right values, so comparing clouds (``_agree_with_open3d``) alone
+    can miss the stop."""
+    if not re.search(rb"(?i)_|inf", data):
+        return
+    index = next((i for i, value in enumerate(values) if b"_" in value or b"inf" in value.lower()), None)
+    if index is not None:
+        raise ValueError(f"{path}: Open3D cannot read point {index // len(names)}'s {names[index % len(names)]} "
+                         f"value {values[index].decode('ascii', 'replace')!r} and stops there; the file is not a "
+                         "readable ASCII PLY")
+
+
 def _agree_with_open3d(path: Path, points: np.ndarray, xyz: np.ndarray) -> None:
     """ValueError where Open3D read an ASCII PLY's points differently from ``_ascii_xyz``: it stops at a
-    value it cannot parse ("inf", "1_0", a word in any column) and leaves the rest of the cloud unread."""
-    _refuse_nonfinite(path, xyz)
+    value it cannot parse and leaves the rest of the cloud unread."""
     differs = np.flatnonzero(~np.isclose(points, xyz, rtol=1e-5, atol=1e-9).all(1)) if len(points) == len(xyz) \
         else np.array([min(len(points), len(xyz))])
     if len(differs):

@@ -192,8 +192,8 @@ def test_ply_length_check_reads_the_header_as_the_format_says(tmp_path, layout):
 @pytest.mark.parametrize("bad_rows, message", [
     ({3: "nan 0.1 0.2 0 0 1", 7: "0.1 inf 0.3 0 0 1"}, "2 of 10 points are NaN or infinite"),
     ({4: "0.1 abc 0.3 0 0 1"}, "'abc' is not a number"),
-    ({4: "0.1 1_0 0.3 0 0 1"}, "at or before point 4 cannot be read"),
-    ({6: "0.1 0.2 0.3 0 inf 1"}, "at or before point 7 cannot be read"),  # point 6 kept its x, y, z
+    ({4: "0.1 1_0 0.3 0 0 1"}, "cannot read point 4's y value '1_0'"),
+    ({6: "0.1 0.2 0.3 0 inf 1"}, "cannot read point 6's ny value 'inf'"),
     ({2: "0.1 0.2 0.3 nan nan nan"}, None),
 ])
 def test_an_ascii_ply_value_open3d_cannot_read_is_named(tmp_path, bad_rows, message):
