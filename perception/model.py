@@ -28,14 +28,13 @@ INFERENCE_ZOOM = 1.05
 """The zoom new models are read at when training names none (``TrainConfig.zoom``; weights record it as
 ``MushroomNet.inference_zoom``; a fine-tune starts at it too, whatever its start was read at), for the
 default scale jitter of 0.9-1.1. The shipped model, fine-tuned on beds scaled by 1.05-1.35, is read at
-1.2 (model card). The network reads a cloud scaled up by this
-factor, i.e. at its voxel / 1.05: a small cap, the kind it misses or tilts wrongly, then spans more
-voxels, and the factor stays inside training's scale jitter. Clustering stays at the model's voxel in
-the cloud's own metres: caps keep their real size. Chosen on val50 for the model shipped in sessions
-16-23 (3 mm spacing, MeanShift), zoom 1 / 1.025 / 1.05 / 1.075 / 1.1 / 1.15 / 1.2: AP@25 99.30 / 99.42 / 99.64 /
-99.49 / 99.47 / 99.44 / 98.02 %, cosine 0.9961 / 0.9968 / 0.9971 / 0.9969 / 0.9963 / 0.9967 /
-0.9971. Older weights record no zoom and are read at 1.1, as they were shipped
-(``perception.train.UNRECORDED_ZOOM``; model card)."""
+1.2 (model card). The network reads a cloud scaled up by this factor, i.e. at its voxel / 1.05: a small
+cap, the kind it misses or tilts wrongly, then spans more voxels, and the factor stays inside
+training's scale jitter. Clustering stays at the model's voxel in the cloud's own metres: caps keep
+their real size. Chosen on val50 for the model shipped in sessions 16-23 (3 mm spacing, MeanShift),
+zoom 1 / 1.025 / 1.05 / 1.075 / 1.1 / 1.15 / 1.2: AP@25 99.30 / 99.42 / 99.64 / 99.49 / 99.47 / 99.44 /
+98.02 %, cosine 0.9961 / 0.9968 / 0.9971 / 0.9969 / 0.9963 / 0.9967 / 0.9971. Older weights record no
+zoom and are read at 1.1, as they were shipped (``perception.train.UNRECORDED_ZOOM``; model card)."""
 
 
 @dataclass(frozen=True)

@@ -33,8 +33,8 @@ from perception.cap import CAP_HEIGHT_RATIO, rotation_from_axis
 HEIGHT_MODES = ("free", "fixed")
 AXIS_MODES = ("surface", "encoding")
 SURFACE_ITERATIONS = 6
-"""The model shipped in sessions 9-14, val50, mean angle with ``STEP_LIMITS``: 3.74 degrees after 4 iterations, 3.61 after
-5, 3.55 after 6; 8 iterations with the earlier, three times tighter limits gave 3.59. The figures of
+"""The model shipped in sessions 9-14, val50, mean angle with ``STEP_LIMITS``: 3.74 degrees after 4
+iterations, 3.61 after 5, 3.55 after 6; 8 iterations with the earlier, three times tighter limits gave 3.59. The figures of
 the next three settings were measured with those (session 9). The model shipped in session 16: val50
 cosine 0.99684, 0.99694, 0.99705 and 0.99710 after 4, 5, 6 and 8 iterations, and no better after 12,
 20 or 30 (test50: 0.99674, 0.99684, 0.99685, 0.99687). Each iteration costs 0.4-0.5 ms of the pose

@@ -101,12 +101,12 @@ def _sorted_keys(x: SparseTensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 DENSE_TABLE_CELLS = 1 << 23
-"""Largest bounding box (cells, margin included) looked up in a dense table: 64 MB of int64 rows.
-A 0.5 m bed at 4.3 mm voxels (zoom 1.05) and 0.1 m of relief spans about 0.4 M cells, at 3.75 mm
-(zoom 1.2, the shipped model's) about 0.6 M; a fused cloud with a stray
-point metres away falls back to sorted keys. On 20 val50 beds (19.4 k voxels at the median, 2
-threads, medians, one run) the kernel maps of a forward pass took 32.8 ms against 53.4 ms with sorted
-keys, and the forward pass 356.7 against 372.9 ms."""
+"""Largest bounding box (cells, margin included) looked up in a dense table: 64 MB of int64 rows. A 0.5 m
+bed at 4.3 mm voxels (zoom 1.05) and 0.1 m of relief spans about 0.4 M cells, at 3.75 mm (zoom 1.2, the
+shipped model's) about 0.6 M; a fused cloud with a stray point metres away falls back to sorted keys.
+On 20 val50 beds (19.4 k voxels at the median, 2 threads, medians, one run) the kernel maps of a
+forward pass took 32.8 ms against 53.4 ms with sorted keys, and the forward pass 356.7 against 372.9
+ms."""
 TABLE_MARGIN = 4
 """Cells of room around the box: a stride-2 map asks from doubled parents up to one cell outside the
 fine voxels, plus its offsets. Queries that reach outside the padded box use the sorted keys."""

@@ -470,8 +470,8 @@ def average_weights(paths: list[Path]) -> tuple[MushroomNet, dict]:
     """The mean of the weights and batch-norm statistics of models fine-tuned from one start (a "model
     soup", Wortsman et al. 2022): runs that share a start stay in one basin of the loss, where the mean
     of their weights is a working model, often better than either, read at no extra cost (the model
-    shipped in sessions 24-25 was one: MODEL_CARD.md); runs from separate starts do not, so they are refused. The mean's
-    training cost is every run behind it, a shared one counted once."""
+    shipped in sessions 24-25 was one: MODEL_CARD.md); runs from separate starts do not, so they are
+    refused. The mean's training cost is every run behind it, a shared one counted once."""
     if len(paths) < 2:
         raise ValueError("averaging needs two weights files or more")
     loaded = [load_weights(Path(path)) for path in paths]
