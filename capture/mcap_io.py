@@ -33,11 +33,11 @@ from typing import Any, Callable, Iterator
 import foxglove
 import numpy as np
 from foxglove.channels import (CameraCalibrationChannel, FrameTransformsChannel, PointCloudChannel,
-                               RawImageChannel)
+                               RawImageChannel, SceneUpdateChannel)
 from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 from foxglove.messages import (CameraCalibration, FrameTransform, FrameTransforms, PackedElementField,
                                PackedElementFieldNumericType, PointCloud, Pose, Quaternion, RawImage,
-                               Timestamp, Vector3)
+                               SceneUpdate, Timestamp, Vector3)
 from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
 from mcap.records import Channel, Message, Schema
@@ -230,17 +230,47 @@ class McapRecorder:
         channel.log(json.dumps(obj, default=_jsonable).encode(), log_time=int(log_time_ns))
         self._messages += 1
 
-    def write_point_cloud(self, topic: str, points: np.ndarray, log_time_ns: int, frame_id: str = "world") -> None:
-        """Log points (N, 3) in metres as a foxglove.PointCloud with float32 fields x, y, z."""
+    def write_point_cloud(self, topic: str, points: np.ndarray, log_time_ns: int, frame_id: str = "world",
+                          colors: np.ndarray | None = None) -> None:
+        """Log points (N, 3) in metres as a foxglove.PointCloud with float32 fields x, y, z and, with
+        ``colors`` (N, 3) uint8, uint8 fields red, green, blue, alpha that viewers colour it by."""
         points = np.asarray(points)
         if points.ndim != 2 or points.shape[1] != 3:
             raise ValueError(f"points must be (N, 3), got {points.shape}")
-        f32 = PackedElementFieldNumericType.Float32
+        f32, u8 = PackedElementFieldNumericType.Float32, PackedElementFieldNumericType.Uint8
+        fields = [PackedElementField(name=name, offset=4 * i, type=f32) for i, name in enumerate("xyz")]
+        if colors is None:
+            data, stride = np.ascontiguousarray(points, "<f4").tobytes(), 12
+        else:
+            colors = np.asarray(colors, np.uint8)
+            if colors.shape != points.shape:
+                raise ValueError(f"colors must be (N, 3) like the points, got {colors.shape}")
+            record = np.zeros(len(points), [("xyz", "<f4", 3), ("rgba", "u1", 4)])
+            record["xyz"], record["rgba"][:, :3], record["rgba"][:, 3] = points, colors, 255
+            fields += [PackedElementField(name=name, offset=12 + i, type=u8)
+                       for i, name in enumerate(("red", "green", "blue", "alpha"))]
+            data, stride = record.tobytes(), 16
         self._channel(topic, PointCloudChannel).log(PointCloud(
             timestamp=_timestamp(int(log_time_ns)), frame_id=frame_id,
-            pose=Pose(position=Vector3(), orientation=Quaternion(w=1.0)), point_stride=12,
-            fields=[PackedElementField(name=name, offset=4 * i, type=f32) for i, name in enumerate("xyz")],
-            data=np.ascontiguousarray(points, "<f4").tobytes()), log_time=int(log_time_ns))
+            pose=Pose(position=Vector3(), orientation=Quaternion(w=1.0)), point_stride=stride, fields=fields,
+            data=data), log_time=int(log_time_ns))
+        self._messages += 1
+
+    def write_transform(self, parent: str, child: str, T_parent_child: np.ndarray, log_time_ns: int) -> None:
+        """Log ``T_parent_child`` on /tf (for viewers; the pose is also kept exact where replay needs it)."""
+        from scipy.spatial.transform import Rotation
+
+        T = np.asarray(T_parent_child, np.float64)
+        x, y, z, w = Rotation.from_matrix(T[:3, :3]).as_quat()
+        self._channel("/tf", FrameTransformsChannel).log(FrameTransforms(transforms=[FrameTransform(
+            timestamp=_timestamp(int(log_time_ns)), parent_frame_id=parent, child_frame_id=child,
+            translation=Vector3(x=T[0, 3], y=T[1, 3], z=T[2, 3]), rotation=Quaternion(x=x, y=y, z=z, w=w))]),
+            log_time=int(log_time_ns))
+        self._messages += 1
+
+    def write_scene_update(self, topic: str, update: SceneUpdate, log_time_ns: int) -> None:
+        """Log a foxglove.SceneUpdate (shapes a viewer draws in 3D)."""
+        self._channel(topic, SceneUpdateChannel).log(update, log_time=int(log_time_ns))
         self._messages += 1
 
     def close(self, discard: bool = False) -> None:
@@ -492,6 +522,41 @@ class McapSource(Source):
 
 FUSED_CLOUD_TOPIC = "/fusion/cloud"
 DETECTIONS_TOPIC = "/perception/mushrooms_json"
+CAPS_TOPIC = "/perception/mushrooms"
+UNIT_TOPIC = "/fusion/unit"
+"""JSON per fused cloud: its frames and its exact T_world_bed, so replay can start from fusion's output."""
+
+
+def _decoded(path: Path, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
+    """(topic, log_time, decoded message) on ``topics`` in log-time order; JSON channels come back as
+    dicts. Raises SourceError with a one-line reason when the file is not a readable MCAP."""
+    from mcap.reader import make_reader
+
+    if not path.is_file():
+        raise SourceError(f"{path} does not exist")
+    try:
+        with open(path, "rb") as file:
+            reader = make_reader(file)
+            factory, decoders = DecoderFactory(), {}
+            for schema, channel, message in reader.iter_messages(topics=topics, log_time_order=True):
+                if channel.message_encoding == "json":
+                    yield channel.topic, message.log_time, json.loads(message.data)
+                    continue
+                if channel.id not in decoders:
+                    decoders[channel.id] = factory.decoder_for(channel.message_encoding, schema)
+                    if decoders[channel.id] is None:
+                        raise SourceError(f"{path}: {channel.topic} is {channel.message_encoding}, not foxglove protobuf")
+                yield channel.topic, message.log_time, decoders[channel.id](message.data)
+    except (McapError, ValueError, EOFError, OSError, json.JSONDecodeError) as error:
+        raise SourceError(f"{path} is not a readable MCAP file, or is cut short ({type(error).__name__})") from None
+
+
+def _cloud_points(message: Any, path: Path, topic: str) -> np.ndarray:
+    offsets = {f.name: f.offset for f in message.fields}
+    if not {"x", "y", "z"} <= set(offsets):
+        raise SourceError(f"{path}: the cloud on {topic} has no x, y, z fields")
+    raw = np.frombuffer(message.data, np.uint8).reshape(-1, message.point_stride)
+    return np.stack([raw[:, offsets[a]:offsets[a] + 4].copy().view("<f4")[:, 0] for a in "xyz"], 1).astype(np.float64)
 
 
 def read_point_cloud(path: str | os.PathLike, topic: str = FUSED_CLOUD_TOPIC) -> tuple[np.ndarray, str]:
@@ -499,25 +564,39 @@ def read_point_cloud(path: str | os.PathLike, topic: str = FUSED_CLOUD_TOPIC) ->
 
     Raises SourceError with a one-line reason when the file is not MCAP or holds no such cloud.
     """
-    from mcap.exceptions import McapError
-    from mcap.reader import make_reader
-
     path = Path(path)
-    if not path.is_file():
-        raise SourceError(f"{path} does not exist")
     last = None
-    try:
-        with open(path, "rb") as file:
-            reader = make_reader(file, decoder_factories=[DecoderFactory()])
-            for _, _, _, message in reader.iter_decoded_messages(topics=[topic]):
-                last = message
-    except (McapError, ValueError, EOFError, OSError) as error:
-        raise SourceError(f"{path} is not a readable MCAP file, or is cut short ({type(error).__name__})") from None
+    for _, _, message in _decoded(path, [topic]):
+        last = message
     if last is None:
         raise SourceError(f"{path} has no point cloud on {topic}")
-    offsets = {f.name: f.offset for f in last.fields}
-    if not {"x", "y", "z"} <= set(offsets):
-        raise SourceError(f"{path}: the cloud on {topic} has no x, y, z fields")
-    raw = np.frombuffer(last.data, np.uint8).reshape(-1, last.point_stride)
-    points = np.stack([raw[:, offsets[a]:offsets[a] + 4].copy().view("<f4")[:, 0] for a in "xyz"], 1)
-    return points.astype(np.float64), last.frame_id
+    return _cloud_points(last, path, topic), last.frame_id
+
+
+@dataclass(frozen=True)
+class RecordedUnit:
+    """A fused cloud as a session recorded it: world-frame points, T_world_bed, its frames, its time."""
+
+    points: np.ndarray
+    T_world_bed: np.ndarray
+    frame_ids: tuple[str, ...]
+    log_time_ns: int
+
+
+def read_fused_units(path: str | os.PathLike) -> list[RecordedUnit]:
+    """Every fused cloud of a session with the unit record written beside it, in log-time order."""
+    path = Path(path)
+    clouds: dict[int, np.ndarray] = {}
+    units: dict[int, dict] = {}
+    for topic, log_time, message in _decoded(path, [FUSED_CLOUD_TOPIC, UNIT_TOPIC]):
+        if topic == FUSED_CLOUD_TOPIC:
+            clouds[log_time] = _cloud_points(message, path, topic)
+        else:
+            units[log_time] = message
+    return [RecordedUnit(clouds[t], np.array(units[t]["T_world_bed"], np.float64).reshape(4, 4),
+                         tuple(units[t].get("frame_ids", ())), t) for t in sorted(clouds) if t in units]
+
+
+def read_documents(path: str | os.PathLike, topic: str = DETECTIONS_TOPIC) -> list[tuple[int, dict]]:
+    """(log_time, document) of every JSON message on ``topic``, in log-time order."""
+    return [(log_time, message) for _, log_time, message in _decoded(Path(path), [topic])]

@@ -62,3 +62,58 @@ def find_cameras() -> list[CameraInfo]:
             continue
         found.extend(module.find_cameras())
     return found
+
+
+class Paced(Source):
+    """Another source's frames, delivered no sooner than their timestamps allow: frame k comes
+    (t_k - t_0) / ``speed`` seconds after the first, as a camera would deliver it."""
+
+    def __init__(self, source: Source, speed: float = 1.0):
+        if speed <= 0:
+            raise ValueError(f"speed must be positive, got {speed}")
+        self.source, self.speed = source, speed
+        self._start: tuple[float, int] | None = None
+
+    def open(self) -> None:
+        self.source.open()
+
+    def read(self) -> DepthFrame | None:
+        import time
+
+        frame = self.source.read()
+        if frame is None:
+            return None
+        if self._start is None:
+            self._start = (time.monotonic(), frame.timestamp_ns)
+        due = self._start[0] + (frame.timestamp_ns - self._start[1]) / 1e9 / self.speed
+        delay = due - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        return frame
+
+    def close(self) -> None:
+        self.source.close()
+
+
+class Interleaved(Source):
+    """Several cameras as one source: one frame of each in turn (a synchronised set), ending when
+    any of them ends."""
+
+    def __init__(self, sources: list[Source]):
+        if not sources:
+            raise ValueError("no sources to interleave")
+        self.sources = sources
+        self._next = 0
+
+    def open(self) -> None:
+        for source in self.sources:
+            source.open()
+
+    def read(self) -> DepthFrame | None:
+        frame = self.sources[self._next].read()
+        self._next = (self._next + 1) % len(self.sources)
+        return frame
+
+    def close(self) -> None:
+        for source in self.sources:
+            source.close()

@@ -238,14 +238,20 @@ class Fuser:
         return travelled + step >= 2 * np.pi - step / 4 and len(set(counts.values())) == 1
 
 
+def height_colors(height: np.ndarray, top: float = 0.06) -> np.ndarray:
+    """(N, 3) uint8 colours of heights above the bed in metres: dark soil brown at the bed through
+    orange to pale cream at ``top`` and above, so caps read as light domes on dark ground."""
+    stops = np.array([[60, 42, 30], [150, 90, 45], [235, 170, 90], [250, 240, 220]], np.float64)
+    t = np.clip(np.asarray(height, np.float64) / top, 0.0, 1.0) * (len(stops) - 1)
+    low = np.minimum(t.astype(np.int64), len(stops) - 2)
+    weight = (t - low)[:, None]
+    return np.round(stops[low] * (1 - weight) + stops[low + 1] * weight).astype(np.uint8)
+
+
 def log_rerun(rec, fused: FusedCloud, entity: str = "world/fusion/cloud", radius: float = 0.0008) -> None:
-    """The fused cloud in world coordinates (beside ``world/camera/<id>``), in its colours, or
-    grey shaded by its normals under a light from above when it has none."""
+    """The fused cloud in world coordinates (beside ``world/camera/<id>``), in its colours, or by
+    height above the bed when it has none."""
     import rerun as rr
 
-    colors = fused.colors
-    if colors is None:
-        light = np.array([0.3, -0.4, 1.0]) / np.linalg.norm([0.3, -0.4, 1.0])
-        shade = 0.3 + 0.7 * np.clip(fused.normals @ light, 0.0, 1.0)
-        colors = (shade[:, None] * np.array([235, 225, 205])).astype(np.uint8)
+    colors = fused.colors if fused.colors is not None else height_colors(fused.points[:, 2])
     rec.log(entity, rr.Points3D(fused.world_points, colors=colors, radii=radius))

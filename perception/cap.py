@@ -146,7 +146,11 @@ class Mushroom:
                         np.zeros(int(item.get("num_points", 0)), np.int64))
 
 
+def detections_document(mushrooms: list[Mushroom], frame: str) -> dict:
+    """The detection document of DESIGN.md section 3, as a dict (what the JSON file and the MCAP hold)."""
+    return {"frame": frame, "units": "m", "mushrooms": [m.to_json() for m in mushrooms]}
+
+
 def detections_json(mushrooms: list[Mushroom], frame: str) -> str:
     """The detection JSON document of DESIGN.md section 3."""
-    return json.dumps({"frame": frame, "units": "m", "mushrooms": [m.to_json() for m in mushrooms]},
-                      indent=1)
+    return json.dumps(detections_document(mushrooms, frame), indent=1)

@@ -160,8 +160,9 @@ def transform_result(result: SceneResult, T_frame_bed: np.ndarray, frame: str) -
     return SceneResult(mushrooms, fit, result.point_labels, result.point_existence, voxels, frame, result.timings_ms)
 
 
-def log_rerun(rec, result: SceneResult, points: np.ndarray, entity: str = "world/perception") -> None:
-    """Existence on the points, the collapsed centres, and the caps as ellipsoids and boxes."""
+def log_rerun(rec, result: SceneResult, points: np.ndarray, entity: str = "world/perception",
+              color=(230, 60, 40)) -> None:
+    """Existence on the points, the collapsed centres, and the caps as ellipsoids and boxes in ``color``."""
     import rerun as rr
 
     from perception.rerun_log import log_caps
@@ -172,7 +173,7 @@ def log_rerun(rec, result: SceneResult, points: np.ndarray, entity: str = "world
     cap_voxels = result.voxels.existence > 0.5
     rec.log(f"{entity}/centers", rr.Points3D(result.voxels.centers[cap_voxels], radii=0.0008, colors=(40, 120, 240)))
     log_caps(rec, f"{entity}/mushrooms", result.fit.centers, result.fit.rotations, result.fit.scales,
-             labels=[f"#{m.id} {2000 * m.radius:.0f} mm" for m in result.mushrooms])
+             labels=[f"#{m.id} {2000 * m.radius:.0f} mm" for m in result.mushrooms], color=color)
 
 
 def evaluate_on_scenes(model: MushroomNet, scenes, methods=("meanshift", "dbscan"), height: str = "free",

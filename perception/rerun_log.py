@@ -14,16 +14,44 @@ def log_points(rec: rr.RecordingStream, entity: str, points: np.ndarray, colors:
 
 def log_caps(rec: rr.RecordingStream, entity: str, centers: np.ndarray, rotations: np.ndarray,
              scales: np.ndarray, labels: list[str] | None = None, color=(230, 60, 40)) -> None:
-    """Each cap as its box ([-s_x, s_x] x [-s_y, s_y] x [0, s_z]) and its half-ellipsoid's full ellipsoid."""
+    """Each cap as its box ([-s_x, s_x] x [-s_y, s_y] x [0, s_z]), its half-ellipsoid's full ellipsoid,
+    both in ``color``, and one label per cap just above its top."""
     if len(centers) == 0:
-        rec.log(f"{entity}/boxes", rr.Clear(recursive=False))
-        rec.log(f"{entity}/ellipsoids", rr.Clear(recursive=False))
+        for part in ("boxes", "ellipsoids", "labels"):
+            rec.log(f"{entity}/{part}", rr.Clear(recursive=False))
         return
     quaternions = Rotation.from_matrix(rotations).as_quat()
     box_centers = centers + rotations[:, :, 2] * (scales[:, 2:3] / 2)
     half = scales * np.array([1.0, 1.0, 0.5])
     rec.log(f"{entity}/boxes", rr.Boxes3D(centers=box_centers, half_sizes=half, quaternions=quaternions,
-                                          colors=color, labels=labels, radii=0.0006))
+                                          colors=color, radii=0.0004))
     rec.log(f"{entity}/ellipsoids", rr.Ellipsoids3D(centers=centers, half_sizes=scales, quaternions=quaternions,
-                                                    colors=(250, 250, 240)))
+                                                    colors=color, line_radii=0.0003))
+    if labels is not None:
+        tops = centers + rotations[:, :, 2] * (scales[:, 2:3] + 0.004)
+        rec.log(f"{entity}/labels", rr.Points3D(tops, labels=labels, radii=0.0001, colors=color,
+                                                show_labels=True))
 
+
+
+def cap_rims(centers: np.ndarray, rotations: np.ndarray, scales: np.ndarray, samples: int = 32) -> np.ndarray:
+    """Each cap's rim (the wide base of its half-ellipsoid) as ``samples`` points, shape (K, samples, 3)."""
+    angle = np.linspace(0.0, 2 * np.pi, samples)
+    local = np.stack([np.cos(angle), np.sin(angle), np.zeros_like(angle)], 1)
+    return centers[:, None] + np.einsum("kij,knj->kni", rotations, local[None] * scales[:, None])
+
+
+def log_caps_in_image(rec: rr.RecordingStream, entity: str, centers: np.ndarray, rotations: np.ndarray,
+                      scales: np.ndarray, T_world_camera: np.ndarray, intrinsics, color=(230, 60, 40)) -> None:
+    """The caps' rims as seen by a camera (``entity`` under its pinhole), over its depth image."""
+    if len(centers) == 0:
+        rec.log(entity, rr.Clear(recursive=False))
+        return
+    rims = cap_rims(centers, rotations, scales).reshape(-1, 3)
+    T = np.linalg.inv(np.asarray(T_world_camera, np.float64))
+    camera = rims @ T[:3, :3].T + T[:3, 3]
+    depth = np.maximum(camera[:, 2], 1e-6)
+    pixels = np.stack([intrinsics.fx * camera[:, 0] / depth + intrinsics.cx,
+                       intrinsics.fy * camera[:, 1] / depth + intrinsics.cy], 1).reshape(len(centers), -1, 2)
+    in_front = (camera[:, 2] > 0).reshape(len(centers), -1).all(1)
+    rec.log(entity, rr.LineStrips2D(pixels[in_front], colors=color, radii=1.5))

@@ -14,8 +14,9 @@ APPLICATION_ID = "mushroom-pose"
 
 @contextmanager
 def rerun_stream(rrd: Path | None = None, spawn: bool = False, serve: bool = False,
-                 blueprint: rr.BlueprintLike | None = None) -> Iterator[rr.RecordingStream | None]:
-    """A recording stream saved to ``rrd`` and/or shown live; None when nothing asked for one.
+                 blueprint: rr.BlueprintLike | None = None, name: str | None = None) -> Iterator[rr.RecordingStream | None]:
+    """A recording stream saved to ``rrd`` and/or shown live, listed in the viewer as ``name``; None
+    when nothing asked for one. ``serve`` serves the web viewer (for a headless machine at the bed).
 
     The .rrd is written to a temporary name and moved into place when the run ends, so an
     interrupted run never leaves a truncated file where the user expects a good one.
@@ -24,6 +25,8 @@ def rerun_stream(rrd: Path | None = None, spawn: bool = False, serve: bool = Fal
         yield None
         return
     rec = rr.RecordingStream(APPLICATION_ID)
+    if name:
+        rec.send_recording_name(name)
     tmp = None
     if rrd is not None:
         rrd = Path(rrd)
@@ -32,7 +35,8 @@ def rerun_stream(rrd: Path | None = None, spawn: bool = False, serve: bool = Fal
     if spawn:
         rec.spawn(connect=rrd is None, default_blueprint=blueprint)
     if serve:
-        rec.serve_grpc(default_blueprint=blueprint)
+        uri = rec.serve_grpc(default_blueprint=blueprint)
+        rr.serve_web_viewer(connect_to=uri, open_browser=False)
     try:
         yield rec
     except BaseException:
@@ -46,14 +50,32 @@ def rerun_stream(rrd: Path | None = None, spawn: bool = False, serve: bool = Fal
         tmp.replace(rrd)
 
 
-def default_blueprint(camera_ids: list[str] = ()) -> rr.BlueprintLike:
-    """3D view of the world, each camera's depth (and colour) in 2D, and per-stage latency over time."""
+HIDDEN_BY_DEFAULT = ("world/perception/existence", "world/perception/centers")
+"""The network's per-point existence and collapsed centres: there to inspect, not to read the bed by."""
+
+
+def default_blueprint(camera_ids: list[str] = (), T_world_bed: np.ndarray | None = None,
+                      extent: float = 0.5) -> rr.BlueprintLike:
+    """The bed in 3D, filling its view from above and in front (known once the bed frame is, from
+    ``T_world_bed`` and the bed's ``extent`` in metres); each camera's depth with the caps over it;
+    per-stage latency and the counts (caps, dropped work) over time."""
     import rerun.blueprint as rrb
 
+    eye = None
+    if T_world_bed is not None:
+        T = np.asarray(T_world_bed, np.float64)
+        target = T[:3, 3]
+        position = target + T[:3, :3] @ np.array([0.0, -0.7, 1.0]) * extent
+        eye = rrb.EyeControls3D(position=position, look_target=target, eye_up=T[:3, 2])
+    # each depth image would also show in 3D as a cloud of its own, over the fused one
+    hidden = [*HIDDEN_BY_DEFAULT, *(f"world/camera/{cid}/depth" for cid in camera_ids)]
+    bed = rrb.Spatial3DView(origin="world", name="bed", eye_controls=eye,
+                            overrides={path: rrb.EntityBehavior(visible=False) for path in hidden})
     cameras = [rrb.Spatial2DView(origin=f"world/camera/{cid}", name=f"camera {cid}") for cid in camera_ids]
-    side = [*cameras, rrb.TimeSeriesView(origin="stats", name="latency and counts")]
-    return rrb.Blueprint(rrb.Horizontal(rrb.Spatial3DView(origin="world", name="bed"), rrb.Vertical(*side),
-                                        column_shares=[3, 2]), collapse_panels=True)
+    plots = [rrb.TimeSeriesView(origin="stats/latency", name="latency per stage (ms)"),
+             rrb.TimeSeriesView(origin="stats/counts", name="caps and dropped work")]
+    side = rrb.Vertical(*cameras[:2], *plots) if cameras else rrb.Vertical(*plots)
+    return rrb.Blueprint(rrb.Horizontal(bed, side, column_shares=[3, 2]), collapse_panels=True)
 
 
 def set_frame(rec: rr.RecordingStream, frame: int, capture_ns: int | None = None) -> None:

@@ -22,6 +22,8 @@ class VirtualBedRig:
     height: float = 0.42
     """Camera height above the bed, metres."""
     fps: float = 15.0
+    start_ns: int = 0
+    """Capture time of the first frame (live runs give the wall clock)."""
 
 
 def virtual_bed_source(rig: VirtualBedRig = VirtualBedRig(), sensor_id: str = "virtual"):
@@ -31,7 +33,7 @@ def virtual_bed_source(rig: VirtualBedRig = VirtualBedRig(), sensor_id: str = "v
 
     bed = build_bed(np.random.default_rng(rig.seed), SceneConfig())
     config = VirtualCameraConfig(turntable=circle_rig(np.zeros(3), rig.radius, rig.height), views=rig.views,
-                                 fps=rig.fps, seed=rig.seed, sensor_id=sensor_id)
+                                 fps=rig.fps, seed=rig.seed, sensor_id=sensor_id, start_ns=rig.start_ns)
     return VirtualSource(bed.vertices, bed.triangles, config), bed
 
 

@@ -1,0 +1,365 @@
+"""The one chain behind demo, live, replay and detect on a session (DESIGN.md section 5b).
+
+A source thread reads frames into a bounded queue and hands each to the sinks that record it; fusion
+takes frames as they arrive and emits a fused unit (a turn, a synchronised set of frames, a frame, or
+a sliding window); perception runs on the newest unit in its own thread; sinks (Rerun, MCAP, detections
+JSON, console) see every output. A live camera is never blocked: when fusion falls behind, the oldest
+queued frame leaves the queue (it is already recorded) and is counted; when perception falls behind,
+a waiting unit is replaced by the newer one and counted. A file source is read no faster than the
+chain keeps up with, so nothing is dropped.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from capture.frames import DepthFrame
+from capture.source import Source
+from fusion.cloud import FusedCloud, Fuser, FusionConfig, fuse
+from fusion.turntable import Rig
+
+UNIT_KINDS = ("turn", "set", "frame", "window")
+
+
+@dataclass(frozen=True)
+class FusionStage:
+    """How frames become fused units: by rig (a turntable: one cloud per turn; several fixed cameras:
+    one per synchronised set), or for one camera without a rig each frame alone or, with ``window``,
+    the last ``window`` frames registered by ICP."""
+
+    config: FusionConfig = field(default_factory=FusionConfig)
+    rig: Rig | None = None
+    window: int | None = None
+
+
+@dataclass(frozen=True)
+class PerceptionStage:
+    """The model that reads each fused unit and how its instances are clustered."""
+
+    clustering: str = "meanshift"
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    fusion: FusionStage = field(default_factory=FusionStage)
+    perception: PerceptionStage = field(default_factory=PerceptionStage)
+    queue_frames: int = 64
+    """Frames that may wait for fusion; a live camera never waits for more room."""
+    live: bool = False
+    """A camera (drop the oldest waiting work when behind) rather than a file (wait for the chain)."""
+    max_units: int | None = None
+    """Stop after this many fused units (``--turns``)."""
+    duration_s: float | None = None
+    """Stop capturing after this many seconds of wall clock."""
+
+
+@dataclass(frozen=True)
+class FusedUnit:
+    """One fused cloud and where it came from, as the sinks see it."""
+
+    index: int
+    kind: str
+    cloud: FusedCloud
+    frames: int
+    last_frame_index: int
+    """Index of the unit's last frame on the ``frame`` timeline."""
+    last_frame_ns: int
+    """Capture time of the unit's last frame (log time of its outputs)."""
+    last_arrival: float
+    """``time.perf_counter()`` when the unit's last frame left the source."""
+    fusion_seconds: float
+
+
+@dataclass(frozen=True)
+class Detection:
+    """Perception's output on one unit, in the world frame, and how long it took."""
+
+    unit: FusedUnit
+    result: object
+    """perception.detect.SceneResult, world frame."""
+    document: dict
+    """The detection document (perception.cap.detections_document)."""
+    perception_seconds: float
+    latency_seconds: float
+    """From the unit's last frame leaving the source to its detections."""
+
+
+class Sink:
+    """Consumes the chain's outputs; every method runs in the thread that made the output (capture
+    in the source thread, fused in the fusion thread, detected in the perception thread)."""
+
+    def captured(self, index: int, frame: DepthFrame) -> None:
+        """Every frame the source delivered, dropped later or not."""
+
+    def fused(self, unit: FusedUnit) -> None:
+        """Every fused unit, handed to perception or not."""
+
+    def detected(self, detection: Detection) -> None:
+        """Every unit perception read."""
+
+    def stats(self, name: str, value: float, frame: int, capture_ns: int) -> None:
+        """A counter or latency at a point of the run (for plots over time)."""
+
+    def close(self, ok: bool) -> None:
+        """Finalise outputs; ``ok`` is False when the run ended by an error."""
+
+
+@dataclass
+class RunSummary:
+    frames: int = 0
+    dropped_frames: int = 0
+    units: int = 0
+    dropped_units: int = 0
+    detections: list[Detection] = field(default_factory=list)
+    last_unit: FusedUnit | None = None
+    unit_kind: str | None = None
+    stopped_by: str = "end"
+    """end (the source ended), duration, turns, or a signal's name."""
+
+
+class UnitBuilder:
+    """Frames in, fused units out, by the policy ``describe`` names."""
+
+    def __init__(self, stage: FusionStage, first: DepthFrame, sensors: int):
+        rig, config = stage.rig, stage.config
+        self.window = None
+        if rig is not None and rig.turntable is not None:
+            self.kind, self._fuser = "turn", Fuser(config, rig)
+        elif rig is not None and len(rig.cameras) > 1:
+            self.kind, self._fuser = "set", Fuser(config, rig, every=len(rig.cameras))
+        elif first.turntable_angle is not None and (first.T_world_camera is not None or rig is not None):
+            self.kind, self._fuser = "turn", Fuser(config, rig)
+        elif sensors > 1:
+            if first.T_world_camera is None:
+                raise ValueError(f"{sensors} cameras and neither a rig nor recorded poses: calibrate them from a "
+                                 "recorded turn (mushroom-pose calibrate --session S --out rig.json) and pass --rig")
+            self.kind, self._fuser = "set", Fuser(config, rig, every=sensors)
+        elif stage.window and stage.window > 1:
+            self.kind, self.window, self._fuser = "window", stage.window, None
+            self._frames: deque[DepthFrame] = deque(maxlen=stage.window)
+        else:
+            self.kind, self._fuser = "frame", Fuser(config, rig, every=1)
+        self._stage = stage
+
+    def describe(self) -> str:
+        return {"turn": "one fused cloud per turn of the turntable",
+                "set": "one fused cloud per synchronised set of the rig's cameras",
+                "frame": "each frame alone (single view; --window N fuses the last N frames)",
+                "window": f"the last {self.window} frames, registered by ICP, after every frame"}[self.kind]
+
+    @property
+    def pending(self) -> int:
+        return len(self._frames) if self._fuser is None else self._fuser.pending
+
+    def add(self, frame: DepthFrame) -> FusedCloud | None:
+        if self._fuser is not None:
+            return self._fuser.add(frame)
+        self._frames.append(frame)
+        return fuse(list(self._frames), self._stage.config, self._stage.rig)
+
+    def flush(self) -> FusedCloud | None:
+        """Fuse an unfinished unit (a partial turn at the end of a session)."""
+        return self._fuser.flush() if self._fuser is not None else None
+
+
+_END = object()
+
+
+class Runner:
+    """Runs ``source`` through fusion and perception into ``sinks`` (see the module docstring)."""
+
+    def __init__(self, source: Source, model, config: RunConfig, sinks: list[Sink],
+                 sensors: int = 1, on_start: Callable[[str], None] | None = None,
+                 stop_requested: Callable[[], str | None] = lambda: None):
+        """``sensors``: how many cameras the source interleaves; ``on_start`` hears which fused unit
+        the runner uses once the first frame has come; ``stop_requested`` returns the name of a stop
+        (a signal) when the run should end early."""
+        self.source, self.model, self.config, self.sinks = source, model, config, sinks
+        self.sensors, self.on_start, self.stop_requested = sensors, on_start, stop_requested
+        self.summary = RunSummary()
+        self._frames: queue.Queue = queue.Queue(maxsize=config.queue_frames)
+        self._halt = threading.Event()
+        self._errors: list[BaseException] = []
+        self._pending: FusedUnit | None = None
+        self._closed = False
+        self._unit_ready = threading.Condition()
+        self._lock = threading.Lock()
+
+    # source thread -------------------------------------------------------------------------------
+    def _capture(self) -> None:
+        index, started = 0, time.monotonic()
+        try:
+            while not self._halt.is_set():
+                if self.config.duration_s is not None and time.monotonic() - started >= self.config.duration_s:
+                    self.summary.stopped_by = "duration"
+                    break
+                frame = self.source.read()
+                if frame is None:
+                    break
+                arrival = time.perf_counter()
+                for sink in self.sinks:
+                    sink.captured(index, frame)
+                self.summary.frames = index + 1
+                self._enqueue((index, frame, arrival))
+                index += 1
+        except BaseException as error:  # noqa: BLE001 - handed to the main thread
+            self._errors.append(error)
+        finally:
+            self._frames.put(_END)
+
+    def _enqueue(self, item) -> None:
+        if not self.config.live:
+            while not self._halt.is_set():
+                try:
+                    self._frames.put(item, timeout=0.1)
+                    return
+                except queue.Full:
+                    continue
+            return
+        while True:
+            try:
+                self._frames.put_nowait(item)
+                return
+            except queue.Full:
+                try:
+                    self._frames.get_nowait()
+                    with self._lock:
+                        self.summary.dropped_frames += 1
+                except queue.Empty:
+                    pass
+
+    # perception thread ---------------------------------------------------------------------------
+    def _offer(self, unit: FusedUnit) -> None:
+        with self._unit_ready:
+            if not self.config.live:
+                self._unit_ready.wait_for(lambda: self._pending is None or self._errors)
+            elif self._pending is not None:
+                self.summary.dropped_units += 1
+            self._pending = unit
+            self._unit_ready.notify_all()
+
+    def _perceive(self) -> None:
+        from perception.cap import detections_document
+        from perception.detect import detect_points, transform_result
+        from perception.instances import ClusterConfig
+
+        clustering = ClusterConfig(method=self.config.perception.clustering)
+        try:
+            while True:
+                with self._unit_ready:
+                    self._unit_ready.wait_for(lambda: self._pending is not None or self._closed)
+                    unit, self._pending = self._pending, None
+                    self._unit_ready.notify_all()
+                if unit is None:
+                    return
+                started = time.perf_counter()
+                cloud = unit.cloud
+                result = transform_result(detect_points(self.model, cloud.points, clustering), cloud.T_world_bed,
+                                          "world")
+                now = time.perf_counter()
+                detection = Detection(unit, result, detections_document(result.mushrooms, "world"), now - started,
+                                      now - unit.last_arrival)
+                self.summary.detections.append(detection)
+                for sink in self.sinks:
+                    sink.detected(detection)
+                for name, value in (("latency/perception_ms", 1000 * detection.perception_seconds),
+                                    ("latency/last_frame_to_detections_ms", 1000 * detection.latency_seconds),
+                                    ("counts/caps", len(result.mushrooms)),
+                                    ("counts/dropped_units", self.summary.dropped_units)):
+                    self._stat(name, value, unit)
+        except BaseException as error:  # noqa: BLE001 - handed to the main thread
+            self._errors.append(error)
+            with self._unit_ready:
+                self._unit_ready.notify_all()
+
+    def _stat(self, name: str, value: float, unit: FusedUnit) -> None:
+        for sink in self.sinks:
+            sink.stats(name, value, unit.last_frame_index, unit.last_frame_ns)
+
+    # fusion (calling thread) ---------------------------------------------------------------------
+    def run(self) -> RunSummary:
+        """Run until the source ends, a limit is reached, a stop is requested or a stage fails; sinks are
+        closed in every case. Errors of any thread are raised here."""
+        capture = threading.Thread(target=self._capture, name="capture", daemon=True)
+        perceive = threading.Thread(target=self._perceive, name="perception", daemon=True)
+        ok = False
+        try:
+            self.source.open()
+            capture.start()
+            perceive.start()
+            self._fuse_frames()
+            ok = not self._errors
+        finally:
+            self._halt.set()
+            with self._unit_ready:
+                self._closed = True
+                self._unit_ready.notify_all()
+            capture.join(timeout=10)
+            perceive.join()
+            try:
+                self.source.close()
+            finally:
+                for sink in self.sinks:
+                    sink.close(ok and not self._errors)
+        if self._errors:
+            raise self._errors[0]
+        return self.summary
+
+    def _fuse_frames(self) -> None:
+        builder: UnitBuilder | None = None
+        unit_frames = 0
+        while True:
+            stop = self.stop_requested()
+            if stop or self._errors:
+                self.summary.stopped_by = stop or self.summary.stopped_by
+                return
+            try:
+                item = self._frames.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            if item is _END:
+                break
+            index, frame, arrival = item
+            if builder is None:
+                builder = UnitBuilder(self.config.fusion, frame, self.sensors)
+                self.summary.unit_kind = builder.kind
+                if self.on_start is not None:
+                    self.on_start(builder.describe())
+            started = time.perf_counter()
+            cloud = builder.add(frame)
+            unit_frames += 1
+            self._stat_frame("latency/fusion_per_frame_ms", 1000 * (time.perf_counter() - started), index, frame)
+            self._stat_frame("counts/dropped_frames", self.summary.dropped_frames, index, frame)
+            self._stat_frame("counts/queued_frames", self._frames.qsize(), index, frame)
+            if cloud is not None:
+                self._emit(cloud, builder.kind, unit_frames, index, frame, arrival, time.perf_counter() - started)
+                unit_frames = 0
+                if self.config.max_units is not None and self.summary.units >= self.config.max_units:
+                    self.summary.stopped_by = "turns"
+                    return
+        if builder is not None and builder.pending and not self._errors:
+            started = time.perf_counter()
+            cloud = builder.flush()
+            if cloud is not None:
+                self._emit(cloud, builder.kind, unit_frames, index, frame, arrival, time.perf_counter() - started)
+
+    def _stat_frame(self, name: str, value: float, index: int, frame: DepthFrame) -> None:
+        for sink in self.sinks:
+            sink.stats(name, value, index, frame.timestamp_ns)
+
+    def _emit(self, cloud: FusedCloud, kind: str, frames: int, last_index: int, last: DepthFrame, arrival: float,
+              seconds: float) -> None:
+        unit = FusedUnit(self.summary.units, kind, cloud, frames, last_index, int(last.timestamp_ns), arrival, seconds)
+        self.summary.units += 1
+        self.summary.last_unit = unit
+        for sink in self.sinks:
+            sink.fused(unit)
+        self._stat("latency/fusion_unit_ms", 1000 * seconds, unit)
+        self._offer(unit)

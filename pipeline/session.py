@@ -1,0 +1,50 @@
+"""A run of the chain with its outputs: the Rerun stream, the session MCAP, the detections JSON and
+the console, opened together and finalised together (what demo, live, replay and detect share)."""
+
+from __future__ import annotations
+
+from contextlib import ExitStack
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from capture.source import Source
+from pipeline.runner import RunConfig, Runner, RunSummary
+
+
+@dataclass(frozen=True)
+class Outputs:
+    """Where a run writes. Each file appears whole when the run ends (a temporary name, then renamed)."""
+
+    record: Path | None = None
+    """The session MCAP: frames (with ``record_frames``), fused clouds, caps."""
+    record_frames: bool = True
+    rrd: Path | None = None
+    detections: Path | None = None
+    spawn: bool = False
+    serve: bool = False
+    name: str | None = None
+    """The recording's name in the viewer (the session's)."""
+    quiet: bool = False
+
+
+def run_chain(source: Source, model, config: RunConfig, outputs: Outputs, sensors: int = 1,
+              on_start: Callable[[str], None] | None = None,
+              stop_requested: Callable[[], str | None] = lambda: None, overwrite: bool = True) -> RunSummary:
+    """Run ``source`` through fusion and perception into the ``outputs``; raises what a stage raised,
+    after every output is finalised."""
+    from capture.mcap_io import McapRecorder
+    from pipeline.rerun_sink import default_blueprint, rerun_stream
+    from pipeline.sinks import ConsoleSink, JsonSink, McapSink, RerunSink
+
+    with ExitStack() as stack:
+        rec = stack.enter_context(rerun_stream(outputs.rrd, spawn=outputs.spawn, serve=outputs.serve,
+                                               blueprint=default_blueprint(), name=outputs.name))
+        sinks = [ConsoleSink(outputs.quiet)]
+        if rec is not None:
+            sinks.append(RerunSink(rec))
+        if outputs.record is not None:
+            sinks.append(McapSink(McapRecorder(outputs.record, overwrite=overwrite), frames=outputs.record_frames))
+        if outputs.detections is not None:
+            sinks.append(JsonSink(outputs.detections))
+        return Runner(source, model, config, sinks, sensors, on_start, stop_requested).run()

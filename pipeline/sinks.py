@@ -1,0 +1,194 @@
+"""Where a run's outputs go: Rerun, the session MCAP, the detections JSON and the console."""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from capture.frames import DepthFrame
+from pipeline.runner import Detection, FusedUnit, Sink
+
+CAP_COLOR = (255, 40, 200)
+"""Caps stand out in magenta against soil, white caps and the height colouring of the cloud."""
+
+
+def cloud_colors(unit: FusedUnit) -> np.ndarray:
+    """The fused cloud's own colours, or its height above the bed on a colour ramp."""
+    from fusion.cloud import height_colors
+
+    cloud = unit.cloud
+    return cloud.colors if cloud.colors is not None else height_colors(cloud.points[:, 2])
+
+
+def write_atomically(path: Path, text: str) -> None:
+    """``path`` holds ``text`` whole or keeps what it held: a temporary name, then renamed."""
+    tmp = path.with_name(path.name + ".partial")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    except OSError:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+class RerunSink(Sink):
+    """Frames under world/camera/<id>, the fused cloud, the caps in 3D and over each camera's image,
+    and stats/* over the frame and capture timelines."""
+
+    def __init__(self, rec):
+        self.rec = rec
+        self._views: dict[str, DepthFrame] = {}
+        self._static_cameras: set[str] = set()
+        self._framed = False
+
+    def _time(self, frame: int, capture_ns: int) -> None:
+        from pipeline.rerun_sink import set_frame
+
+        set_frame(self.rec, frame, capture_ns)
+
+    def captured(self, index: int, frame: DepthFrame) -> None:
+        from capture.frames import log_rerun
+
+        self._time(index, frame.timestamp_ns)
+        log_rerun(self.rec, frame, pinhole=frame.sensor_id not in self._static_cameras)
+        self._static_cameras.add(frame.sensor_id)
+        self._views[frame.sensor_id] = frame
+
+    def fused(self, unit: FusedUnit) -> None:
+        import rerun as rr
+
+        from pipeline.rerun_sink import default_blueprint
+
+        if not self._framed:
+            self._framed = True
+            extent = float(np.ptp(unit.cloud.points[:, :2], axis=0).max()) if len(unit.cloud) else 0.5
+            self.rec.send_blueprint(default_blueprint(sorted(self._views), unit.cloud.T_world_bed, extent))
+        self._time(unit.last_frame_index, unit.last_frame_ns)
+        self.rec.log("world/fusion/cloud", rr.Points3D(unit.cloud.world_points, colors=cloud_colors(unit),
+                                                       radii=0.0008))
+
+    def detected(self, detection: Detection) -> None:
+        from perception.detect import log_rerun
+        from perception.rerun_log import log_caps_in_image
+
+        unit = detection.unit
+        self._time(unit.last_frame_index, unit.last_frame_ns)
+        log_rerun(self.rec, detection.result, unit.cloud.world_points, color=CAP_COLOR)
+        fit = detection.result.fit
+        for sensor, frame in list(self._views.items()):
+            if frame.T_world_camera is not None:
+                log_caps_in_image(self.rec, f"world/camera/{sensor}/caps", fit.centers, fit.rotations, fit.scales,
+                                  frame.T_world_camera, frame.intrinsics, CAP_COLOR)
+
+    def stats(self, name: str, value: float, frame: int, capture_ns: int) -> None:
+        import rerun as rr
+
+        self._time(frame, capture_ns)
+        self.rec.log(f"stats/{name}", rr.Scalars(float(value)))
+
+
+class McapSink(Sink):
+    """The session MCAP: every captured frame (with ``frames``), each fused cloud coloured, its
+    T_world_bed on /tf and in a unit record, and the caps as a SceneUpdate and as JSON."""
+
+    def __init__(self, recorder, frames: bool = True):
+        self.recorder, self.frames = recorder, frames
+        self._lock = threading.Lock()
+
+    def captured(self, index: int, frame: DepthFrame) -> None:
+        if self.frames:
+            with self._lock:
+                self.recorder.write(frame)
+
+    def fused(self, unit: FusedUnit) -> None:
+        from capture.mcap_io import FUSED_CLOUD_TOPIC, UNIT_TOPIC
+
+        t = unit.last_frame_ns
+        with self._lock:
+            self.recorder.write_transform("world", "bed", unit.cloud.T_world_bed, t)
+            self.recorder.write_point_cloud(FUSED_CLOUD_TOPIC, unit.cloud.world_points, t, "world",
+                                            colors=cloud_colors(unit))
+            self.recorder.write_json(UNIT_TOPIC, {"index": unit.index, "kind": unit.kind,
+                                                  "T_world_bed": unit.cloud.T_world_bed.ravel().tolist(),
+                                                  "frame_ids": list(unit.cloud.frame_ids)}, t)
+
+    def detected(self, detection: Detection) -> None:
+        from capture.mcap_io import CAPS_TOPIC, DETECTIONS_TOPIC
+
+        t = detection.unit.last_frame_ns
+        document = {**detection.document, "unit": detection.unit.index}
+        with self._lock:
+            self.recorder.write_scene_update(CAPS_TOPIC, caps_scene_update(detection, t), t)
+            self.recorder.write_json(DETECTIONS_TOPIC, document, t)
+
+    def close(self, ok: bool) -> None:
+        with self._lock:
+            self.recorder.close(discard=not ok and not self.recorder.frames)
+
+
+def caps_scene_update(detection: Detection, log_time_ns: int):
+    """The caps as Foxglove draws them: an ellipsoid, its box and a label with id and diameter each."""
+    from foxglove.messages import (Color, CubePrimitive, Pose, Quaternion, SceneEntity, SceneEntityDeletion,
+                                   SceneEntityDeletionType, SceneUpdate, SpherePrimitive, TextPrimitive,
+                                   Timestamp, Vector3)
+    from scipy.spatial.transform import Rotation
+
+    fit = detection.result.fit
+    stamp = Timestamp(log_time_ns // 1_000_000_000, log_time_ns % 1_000_000_000)
+    r, g, b = (channel / 255 for channel in CAP_COLOR)
+    quaternions = Rotation.from_matrix(fit.rotations).as_quat() if len(fit.centers) else np.zeros((0, 4))
+    entities = []
+    for k, (center, rotation, scales, q) in enumerate(zip(fit.centers, fit.rotations, fit.scales, quaternions)):
+        orientation = Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])
+        box_center = center + rotation[:, 2] * scales[2] / 2
+        top = center + rotation[:, 2] * (scales[2] + 0.006)
+        entities.append(SceneEntity(
+            timestamp=stamp, frame_id="world", id=f"cap-{k}",
+            spheres=[SpherePrimitive(pose=Pose(position=Vector3(x=center[0], y=center[1], z=center[2]),
+                                               orientation=orientation),
+                                     size=Vector3(x=2 * scales[0], y=2 * scales[1], z=2 * scales[2]),
+                                     color=Color(r=r, g=g, b=b, a=0.55))],
+            cubes=[CubePrimitive(pose=Pose(position=Vector3(x=box_center[0], y=box_center[1], z=box_center[2]),
+                                           orientation=orientation),
+                                 size=Vector3(x=2 * scales[0], y=2 * scales[1], z=scales[2]),
+                                 color=Color(r=r, g=g, b=b, a=0.15))],
+            texts=[TextPrimitive(pose=Pose(position=Vector3(x=top[0], y=top[1], z=top[2]),
+                                           orientation=Quaternion(w=1.0)),
+                                 billboard=True, font_size=14.0, scale_invariant=True,
+                                 color=Color(r=1.0, g=1.0, b=1.0, a=1.0),
+                                 text=f"#{k} {2000 * scales[:2].mean():.0f} mm")]))
+    return SceneUpdate(deletions=[SceneEntityDeletion(timestamp=stamp, type=SceneEntityDeletionType.All)],
+                       entities=entities)
+
+
+class JsonSink(Sink):
+    """The newest unit's detections, written whole after every unit (a stop keeps the last one)."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.written = False
+
+    def detected(self, detection: Detection) -> None:
+        write_atomically(self.path, json.dumps(detection.document, indent=1))
+        self.written = True
+
+
+class ConsoleSink(Sink):
+    """One line per fused unit on stderr: frames, caps, and the time each stage took."""
+
+    def __init__(self, quiet: bool = False):
+        self.quiet = quiet
+
+    def detected(self, detection: Detection) -> None:
+        if self.quiet:
+            return
+        unit = detection.unit
+        print(f"{unit.kind} {unit.index + 1}: {unit.frames} frames, {len(unit.cloud)} points, "
+              f"{len(detection.result.mushrooms)} caps (fusion {unit.fusion_seconds:.2f} s, perception "
+              f"{detection.perception_seconds:.2f} s, last frame to caps {detection.latency_seconds:.2f} s)",
+              file=sys.stderr, flush=True)
