@@ -64,6 +64,15 @@ class FusedCloud:
     def __len__(self) -> int:
         return len(self.points)
 
+    @staticmethod
+    def from_world(points: np.ndarray, T_world_bed: np.ndarray, frame_ids: tuple[str, ...] = ()) -> "FusedCloud":
+        """A cloud known only by its world-frame points and bed frame (as a session records it)."""
+        T = np.asarray(T_world_bed, np.float64)
+        bed = ((np.asarray(points, np.float64) - T[:3, 3]) @ T[:3, :3]).astype(np.float32)
+        normals = np.zeros_like(bed)
+        normals[:, 2] = 1.0
+        return FusedCloud(bed, normals, None, T, tuple(frame_ids), np.zeros((0, 4, 4)))
+
     @property
     def world_points(self) -> np.ndarray:
         return (self.points @ self.T_world_bed[:3, :3].T.astype(np.float32)

@@ -302,12 +302,14 @@ def cmd_detect(args: argparse.Namespace) -> int:
 
     from capture.frames import transform_points
     from fusion.bed import estimate_bed_frame
-    from perception.cap import detections_json, tilt_deg
+    from perception.cap import detections_json
     from perception.detect import detect_points, log_rerun, transform_result
     from perception.instances import ClusterConfig
     from pipeline.clouds import load_cloud
     from pipeline.rerun_sink import rerun_stream
 
+    if Path(args.cloud).suffix.lower() == ".mcap" and _is_raw_session(Path(args.cloud)):
+        return _detect_session(args)
     try:
         cloud = load_cloud(Path(args.cloud))
     except ValueError as error:
@@ -335,14 +337,8 @@ def cmd_detect(args: argparse.Namespace) -> int:
     except ValueError as error:
         raise CliError(str(error)) from None
     result = transform_result(result, T_input_bed, frame)
-    up = T_input_bed[:3, 2]
     print(f"{len(result.mushrooms)} caps in {args.cloud} ({len(points)} points, frame: {frame}, metres)")
-    if result.mushrooms:
-        print(f"{'id':>3} {'x mm':>8} {'y mm':>8} {'z mm':>8} {'tilt deg':>8} {'cap mm':>7} {'score':>6}")
-    for m in result.mushrooms:
-        x, y, z = 1000 * m.center
-        print(f"{m.id:>3} {x:>8.1f} {y:>8.1f} {z:>8.1f} {float(tilt_deg(m.axis, up)):>8.1f} "
-              f"{2000 * m.radius:>7.1f} {m.score:>6.2f}")
+    _print_caps(result, T_input_bed[:3, 2])
     text = detections_json(result.mushrooms, frame)
     payload = json.loads(text)
     payload["T_input_bed"] = T_input_bed.tolist()
@@ -352,6 +348,62 @@ def cmd_detect(args: argparse.Namespace) -> int:
             log_rerun(rec, result, points)
     print(f"detections: {out}" + (f"  rerun: {rrd}" if rrd else ""))
     return 0
+
+
+def _is_raw_session(path: Path) -> bool:
+    """A recording of depth frames with no fused cloud: ``detect`` fuses it first."""
+    from capture.mcap_io import McapSource, read_point_cloud
+    from capture.source import SourceError
+
+    try:
+        read_point_cloud(path)
+        return False
+    except SourceError:
+        pass
+    try:
+        with McapSource(path) as session:
+            return bool(session.sensor_ids)
+    except SourceError:
+        return False
+
+
+def _detect_session(args: argparse.Namespace) -> int:
+    """``detect`` on a session of raw frames: fused and detected through the runner, caps in the world frame."""
+    from capture.mcap_io import McapSource
+    from capture.source import SourceError
+    from pipeline.runner import PerceptionStage, RunConfig
+    from pipeline.session import Outputs, run_chain
+
+    out = _writable_file(args.out, inputs=(args.cloud, _model_path(args.model)), suffix=".json")
+    rrd = _writable_file(args.rrd, inputs=(args.cloud, _model_path(args.model)), suffix=".rrd")
+    model, _ = _load_model(args.model)
+    source = McapSource(args.cloud)
+    try:
+        source.open()
+        summary = run_chain(source, model, RunConfig(perception=PerceptionStage(args.clustering)),
+                            Outputs(rrd=rrd, detections=out, name=Path(args.cloud).name, quiet=True),
+                            sensors=max(1, len(source.sensor_ids)))
+    except (SourceError, ValueError) as error:
+        raise CliError(str(error)) from None
+    if not summary.detections:
+        raise CliError(f"{args.cloud}: its frames gave no fused cloud")
+    result = summary.detections[-1].result
+    print(f"{len(result.mushrooms)} caps in {args.cloud} (fused {summary.units} units from {summary.frames} frames; "
+          "the last unit's caps, frame: world, metres)")
+    _print_caps(result, summary.detections[-1].unit.cloud.T_world_bed[:3, 2])
+    print(f"detections: {out}" + (f"  rerun: {rrd}" if rrd else ""))
+    return 0
+
+
+def _print_caps(result, up) -> None:
+    from perception.cap import tilt_deg
+
+    if result.mushrooms:
+        print(f"{'id':>3} {'x mm':>8} {'y mm':>8} {'z mm':>8} {'tilt deg':>8} {'cap mm':>7} {'score':>6}")
+    for m in result.mushrooms:
+        x, y, z = 1000 * m.center
+        print(f"{m.id:>3} {x:>8.1f} {y:>8.1f} {z:>8.1f} {float(tilt_deg(m.axis, up)):>8.1f} "
+              f"{2000 * m.radius:>7.1f} {m.score:>6.2f}")
 
 
 PAPER = {"ap25": {"meanshift": 0.9957, "dbscan": 0.9920}, "ap50": {"meanshift": 0.8195, "dbscan": 0.8148},
@@ -468,6 +520,112 @@ def cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
+STOP_EXIT = {"SIGINT": 130, "SIGTERM": 143}
+"""Exit status of a run stopped by a signal (128 + its number), so a supervisor can tell."""
+
+
+def _tolerances(args: argparse.Namespace):
+    from pipeline.check import Tolerances
+
+    return Tolerances(args.tol_center_mm, args.tol_axis_deg, args.tol_radius_pct)
+
+
+def _wrote(paths) -> str:
+    return ", ".join(str(p) for p in paths if p is not None and Path(p).exists())
+
+
+def cmd_live(args: argparse.Namespace) -> int:
+    from capture.mcap_io import graceful_stop
+    from capture.source import SourceError
+    from fusion.turntable import Rig
+    from pipeline.runner import FusionStage, PerceptionStage, RunConfig
+    from pipeline.session import Outputs, run_chain
+    from pipeline.sources import make_source
+
+    if args.playback and args.camera != "realsense":
+        raise CliError("--playback plays a RealSense device file: use it with --camera realsense")
+    if args.playback and not Path(args.playback).is_file():
+        raise CliError(f"--playback: no device file at {args.playback}")
+    record = _writable_file(args.record, suffix=".mcap")
+    if record is not None and record.exists() and not args.overwrite:
+        raise CliError(f"{record} exists: pass --overwrite to replace it")
+    rrd = _writable_file(args.rrd, suffix=".rrd")
+    detections = _writable_file(args.detections, suffix=".json")
+    rig = None
+    if args.rig:
+        try:
+            rig = Rig.load(args.rig)
+        except ValueError as error:
+            raise CliError(str(error)) from None
+    model, _ = _load_model(args.model)
+    torch_threads(args.threads)
+    try:
+        source = make_source(args.camera, args.serial, args.seed, args.views, playback=args.playback, live=True)
+    except (SourceError, ImportError, ValueError) as error:
+        raise CliError(f"{args.camera} camera: {error}") from None
+    if args.camera == "virtual" and rig is None:
+        rig = Rig(source.source.config.turntable)
+    config = RunConfig(fusion=FusionStage(rig=rig, window=args.window), perception=PerceptionStage(args.clustering),
+                       live=True, max_units=args.turns, duration_s=args.duration)
+    outputs = Outputs(record=record, rrd=rrd, detections=detections, spawn=args.spawn, serve=args.serve,
+                      name=f"live {args.camera} {time.strftime('%Y-%m-%d %H:%M:%S')}", quiet=args.quiet)
+    with graceful_stop() as stop:
+        try:
+            summary = run_chain(source, model, config, outputs, on_start=lambda text: print(f"fused unit: {text}"),
+                                stop_requested=lambda: stop.signal if stop.requested else None,
+                                overwrite=args.overwrite)
+        except (SourceError, ValueError, OSError) as error:
+            kept = _wrote((record, rrd, detections))
+            raise CliError(f"{args.camera} camera: {error}" + (f"; kept {kept}" if kept else "")) from None
+    outputs_line = _wrote((record, rrd, detections)) or "nothing (add --record, --rrd or --detections)"
+    line = (f"{summary.frames} frames, {summary.units} fused units, {len(summary.detections)} detected, "
+            f"{summary.dropped_frames} frames and {summary.dropped_units} units dropped; wrote {outputs_line}")
+    if summary.stopped_by in STOP_EXIT:
+        print(f"stopped by {summary.stopped_by}: {line}", file=sys.stderr)
+        return STOP_EXIT[summary.stopped_by]
+    print(f"{summary.stopped_by}: {line}")
+    return 0
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from capture.mcap_io import graceful_stop
+    from pipeline.replay import ReplayError, ReplayOptions, run_replay
+
+    session = Path(args.session)
+    if not session.is_file():
+        raise CliError(f"{session} does not exist" if not session.exists() else f"{session} is not a file")
+    out_dir = _writable_dir(args.out)
+    rrd = _writable_file(args.rrd or str(out_dir / "replay.rrd"), inputs=(args.session,), suffix=".rrd")
+    if (out_dir / "replay.mcap").exists() and (out_dir / "replay.mcap").samefile(session):
+        raise CliError(f"{session} is the replay's own output; pick another --out")
+    model, _ = _load_model(args.model)
+    torch_threads(args.threads)
+    options = ReplayOptions(args.from_stage, args.speed == "realtime", Path(args.rig) if args.rig else None,
+                            args.window, args.clustering)
+    with graceful_stop() as stop:
+        try:
+            result = run_replay(session, model, out_dir, rrd, options, _tolerances(args) if args.check else None,
+                                quiet=args.quiet, stop_requested=lambda: stop.signal if stop.requested else None,
+                                on_start=lambda text: print(f"fused unit: {text}"))
+        except ReplayError as error:
+            raise CliError(str(error)) from None
+    summary = result.summary
+    if result.frames_lost:
+        print(f"warning: {session} was cut short (not finalised): replayed its {summary.frames} whole frames; "
+              "what followed the last whole chunk is lost", file=sys.stderr)
+    caps = len(summary.detections[-1].result.mushrooms) if summary.detections else 0
+    line = (f"replayed {summary.frames} frames into {summary.units} fused units ({caps} caps in the last) -> "
+            f"{_wrote((out_dir / 'replay.mcap', out_dir / 'detections.json', rrd))}")
+    if summary.stopped_by in STOP_EXIT:
+        print(f"stopped by {summary.stopped_by}: {line}", file=sys.stderr)
+        return STOP_EXIT[summary.stopped_by]
+    print(line)
+    if result.check is not None:
+        print(result.check.table(everything=args.verbose))
+        return 0 if result.check.passed else 1
+    return 0
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
     import numpy as np
 
@@ -575,7 +733,8 @@ def build_parser() -> argparse.ArgumentParser:
     average.add_argument("--out", required=True, help="the weights file (.pt) to write")
     average.set_defaults(run=cmd_average)
 
-    detect = sub.add_parser("detect", help="find caps in a point cloud (.ply, .pcd, .npz)")
+    detect = sub.add_parser("detect", help="find caps in a point cloud (.ply, .pcd, .npz) or a session .mcap "
+                            "(its fused cloud, or its frames fused first)")
     detect.add_argument("cloud", help="the point cloud file")
     detect.add_argument("--out", default="detections.json", help="detections JSON (default detections.json)")
     detect.add_argument("--rrd", help="also write a Rerun recording of the result")
@@ -631,6 +790,56 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     rec.add_argument("--quiet", action="store_true")
     rec.set_defaults(run=cmd_record)
+
+    live = sub.add_parser("live", help="capture, fuse and detect as frames arrive, shown in Rerun and recorded")
+    live.add_argument("--camera", choices=["realsense", "oak", "virtual"], required=True)
+    live.add_argument("--serial", help="which camera (serial number or OAK MxId) when several are attached")
+    live.add_argument("--playback", help="RealSense: play this recorded device file (.db3) through the driver")
+    live.add_argument("--rig", help="rig file from mushroom-pose calibrate (turntable or several cameras)")
+    live.add_argument("--window", type=_positive(int), help="one camera without a rig: fuse the last N frames "
+                      "(registered by ICP) after every frame (default: each frame alone)")
+    live.add_argument("--record", help="record the session (frames, fused clouds, caps) to this .mcap")
+    live.add_argument("--overwrite", action="store_true", help="replace an existing --record file")
+    live.add_argument("--rrd", help="save the Rerun recording to this .rrd")
+    live.add_argument("--detections", help="keep the newest caps in this JSON file")
+    viewer = live.add_mutually_exclusive_group()
+    viewer.add_argument("--spawn", action="store_true", help="show the run in a Rerun viewer")
+    viewer.add_argument("--serve", action="store_true", help="serve the Rerun web viewer (a headless machine)")
+    live.add_argument("--duration", type=_positive(float), help="seconds to capture (default: until the camera "
+                      "ends, --turns, or Ctrl-C)")
+    live.add_argument("--turns", type=_positive(int), help="stop after this many fused units (turns of a turntable)")
+    live.add_argument("--seed", type=_seed, default=0, help="virtual camera: which synthetic bed")
+    live.add_argument("--views", type=_positive(int), default=18, help="virtual camera: views per turn")
+    live.add_argument("--model", help="weights file (default: the shipped model)")
+    live.add_argument("--clustering", choices=["meanshift", "dbscan"], default="meanshift")
+    live.add_argument("--threads", type=_threads, help="torch threads (default: all cores)")
+    live.add_argument("--quiet", action="store_true", help="no line per fused unit")
+    live.set_defaults(run=cmd_live)
+
+    replay = sub.add_parser("replay", help="re-run fusion and perception on a recorded session; --check "
+                            "compares with the detections it recorded")
+    replay.add_argument("session", help="a session .mcap (from live, record or demo)")
+    replay.add_argument("--out", default="replay", help="output folder (default ./replay): replay.mcap, "
+                        "detections.json, replay.rrd")
+    replay.add_argument("--rrd", help="the Rerun recording (default OUT/replay.rrd)")
+    replay.add_argument("--from-stage", choices=["capture", "fusion"], default="capture",
+                        help="capture: fuse the recorded frames again (default); fusion: detect on the recorded "
+                             "fused clouds")
+    replay.add_argument("--speed", choices=["max", "realtime"], default="max",
+                        help="max: as fast as the chain runs (default); realtime: at the recorded frame rate")
+    replay.add_argument("--rig", help="rig file from mushroom-pose calibrate")
+    replay.add_argument("--window", type=_positive(int), help="one camera without a rig: fuse the last N frames")
+    replay.add_argument("--check", action="store_true", help="compare the new caps with the recorded ones unit by "
+                        "unit; exit 1 when a cap is lost, gained or changed beyond the tolerances")
+    replay.add_argument("--tol-center-mm", type=_positive(float), default=2.0, help="default 2")
+    replay.add_argument("--tol-axis-deg", type=_positive(float), default=3.0, help="default 3")
+    replay.add_argument("--tol-radius-pct", type=_positive(float), default=5.0, help="default 5")
+    replay.add_argument("--verbose", action="store_true", help="--check: list every cap, not only changes")
+    replay.add_argument("--model", help="weights file (default: the shipped model)")
+    replay.add_argument("--clustering", choices=["meanshift", "dbscan"], default="meanshift")
+    replay.add_argument("--threads", type=_threads, help="torch threads (default: all cores)")
+    replay.add_argument("--quiet", action="store_true", help="no line per fused unit")
+    replay.set_defaults(run=cmd_replay)
 
     calibrate = sub.add_parser("calibrate", help="turntable axis and camera extrinsics from a recorded turn")
     calibrate.add_argument("--session", required=True, help="an MCAP recording of one full turn")

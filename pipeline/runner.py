@@ -37,6 +37,9 @@ class FusionStage:
     config: FusionConfig = field(default_factory=FusionConfig)
     rig: Rig | None = None
     window: int | None = None
+    recorded: tuple[FusedCloud, ...] | None = None
+    """Fused clouds a session recorded: the frames pass through to the sinks unfused and perception
+    reads these instead (``replay --from-stage fusion``)."""
 
 
 @dataclass(frozen=True)
@@ -314,7 +317,8 @@ class Runner:
 
     def _fuse_frames(self) -> None:
         builder: UnitBuilder | None = None
-        unit_frames = 0
+        recorded = self.config.fusion.recorded
+        unit_frames, index, frame, arrival = 0, -1, None, time.perf_counter()
         while True:
             stop = self.stop_requested()
             if stop or self._errors:
@@ -327,6 +331,8 @@ class Runner:
             if item is _END:
                 break
             index, frame, arrival = item
+            if recorded is not None:
+                continue
             if builder is None:
                 builder = UnitBuilder(self.config.fusion, frame, self.sensors)
                 self.summary.unit_kind = builder.kind
@@ -344,6 +350,12 @@ class Runner:
                 if self.config.max_units is not None and self.summary.units >= self.config.max_units:
                     self.summary.stopped_by = "turns"
                     return
+        if recorded is not None:
+            self.summary.unit_kind = "recorded"
+            for cloud in recorded:
+                last = _frame_time(cloud, frame)
+                self._emit(cloud, "recorded", len(cloud.frame_ids), index, last, arrival, 0.0)
+            return
         if builder is not None and builder.pending and not self._errors:
             started = time.perf_counter()
             cloud = builder.flush()
@@ -354,12 +366,20 @@ class Runner:
         for sink in self.sinks:
             sink.stats(name, value, index, frame.timestamp_ns)
 
-    def _emit(self, cloud: FusedCloud, kind: str, frames: int, last_index: int, last: DepthFrame, arrival: float,
-              seconds: float) -> None:
-        unit = FusedUnit(self.summary.units, kind, cloud, frames, last_index, int(last.timestamp_ns), arrival, seconds)
+    def _emit(self, cloud: FusedCloud, kind: str, frames: int, last_index: int, last: DepthFrame | int,
+              arrival: float, seconds: float) -> None:
+        last_ns = last if isinstance(last, int) else int(last.timestamp_ns)
+        unit = FusedUnit(self.summary.units, kind, cloud, frames, last_index, last_ns, arrival, seconds)
         self.summary.units += 1
         self.summary.last_unit = unit
         for sink in self.sinks:
             sink.fused(unit)
         self._stat("latency/fusion_unit_ms", 1000 * seconds, unit)
         self._offer(unit)
+
+
+def _frame_time(cloud: FusedCloud, fallback: DepthFrame | None) -> int:
+    """Capture time of a recorded cloud's last frame (its id ``sensor@timestamp_ns``)."""
+    if cloud.frame_ids:
+        return int(cloud.frame_ids[-1].rsplit("@", 1)[1])
+    return int(fallback.timestamp_ns) if fallback is not None else 0

@@ -127,8 +127,9 @@ class McapSink(Sink):
             self.recorder.write_json(DETECTIONS_TOPIC, document, t)
 
     def close(self, ok: bool) -> None:
+        """Finalise the file; one that got no frame to copy is discarded (an earlier file of its name stays)."""
         with self._lock:
-            self.recorder.close(discard=not ok and not self.recorder.frames)
+            self.recorder.close(discard=self.frames and not self.recorder.frames)
 
 
 def caps_scene_update(detection: Detection, log_time_ns: int):

@@ -37,14 +37,23 @@ def virtual_bed_source(rig: VirtualBedRig = VirtualBedRig(), sensor_id: str = "v
     return VirtualSource(bed.vertices, bed.triangles, config), bed
 
 
-def make_source(camera: str, serial: str | None = None, seed: int = 0, views: int = 18) -> Source:
-    """A source for ``mushroom-pose record`` / ``live``: realsense, oak or virtual."""
+def make_source(camera: str, serial: str | None = None, seed: int = 0, views: int = 18, *,
+                playback: str | None = None, live: bool = False) -> Source:
+    """A source for ``mushroom-pose record`` / ``live``: realsense (a camera, or a recorded device
+    file through the same driver), oak or virtual. ``live`` paces the virtual camera in real time at
+    its frame rate with wall-clock timestamps, so it behaves as a real one."""
     if camera == "virtual":
-        return virtual_bed_source(VirtualBedRig(seed=seed, views=views))[0]
+        import time
+
+        from capture.source import Paced
+
+        rig = VirtualBedRig(seed=seed, views=views, start_ns=time.time_ns() if live else 0)
+        source = virtual_bed_source(rig)[0]
+        return Paced(source) if live else source
     if camera == "realsense":
         from capture.realsense import RealSenseConfig, RealSenseSource
 
-        return RealSenseSource(RealSenseConfig(serial=serial))
+        return RealSenseSource(RealSenseConfig(serial=serial, playback=playback))
     if camera == "oak":
         from capture.oak import OakConfig, OakSource
 

@@ -1,0 +1,120 @@
+"""``mushroom-pose replay``: a recorded session through the chain again, at a desk, and ``--check``
+against the detections the session recorded."""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+from pipeline.check import CheckReport, Tolerances, compare
+from pipeline.runner import RunSummary
+
+OUTPUT_NAMES = ("replay.mcap", "detections.json")
+
+
+class ReplayError(ValueError):
+    """A session that cannot be replayed (one line)."""
+
+
+@dataclass(frozen=True)
+class ReplayOptions:
+    from_stage: str = "capture"
+    """capture: fuse the recorded frames again; fusion: perception on the recorded fused clouds."""
+    realtime: bool = False
+    """Deliver frames at their recorded pace, as a camera would (default: as fast as the chain runs)."""
+    rig: Path | None = None
+    window: int | None = None
+    clustering: str = "meanshift"
+
+
+@dataclass(frozen=True)
+class ReplayResult:
+    summary: RunSummary
+    frames_lost: bool
+    """The session was cut short (no MCAP footer): replayed up to its last whole frame."""
+    check: CheckReport | None
+
+
+def expected_documents(session: Path) -> list[dict]:
+    """The detection documents a recording carries: its /perception/mushrooms_json messages, or, for a
+    device file or a session without them, ``<session stem>.expected.json`` beside it (a list)."""
+    import json
+
+    from capture.mcap_io import read_documents
+    from capture.source import SourceError
+
+    sidecar = session.with_name(session.stem + ".expected.json")
+    if session.suffix == ".mcap":
+        try:
+            documents = [document for _, document in read_documents(session)]
+        except SourceError:
+            documents = []
+        if documents:
+            return documents
+    if sidecar.is_file():
+        try:
+            documents = json.loads(sidecar.read_text())
+        except (OSError, json.JSONDecodeError) as error:
+            raise ReplayError(f"{sidecar} is not a list of detection documents: {error}") from None
+        if isinstance(documents, list) and all(isinstance(d, dict) for d in documents):
+            return documents
+        raise ReplayError(f"{sidecar} is not a list of detection documents")
+    raise ReplayError(f"{session} records no detections (/perception/mushrooms_json) and has no {sidecar.name} "
+                      "beside it: nothing to check against")
+
+
+def run_replay(session: Path, model, out_dir: Path, rrd: Path | None, options: ReplayOptions = ReplayOptions(),
+               check: Tolerances | None = None, quiet: bool = False, stop_requested=lambda: None,
+               on_start=None) -> ReplayResult:
+    """Replay ``session`` into ``out_dir`` (replay.mcap: the session's frames with the new fusion and
+    perception topics; detections.json: the last unit's caps) and ``rrd``; with ``check``, compare
+    every unit's caps with those the session recorded."""
+    from capture.mcap_io import McapSource, TruncatedRecordingWarning, read_fused_units
+    from capture.source import Paced, SourceError
+    from fusion.cloud import FusedCloud
+    from fusion.turntable import Rig
+    from pipeline.runner import FusionStage, PerceptionStage, RunConfig
+    from pipeline.session import Outputs, run_chain
+
+    expected = expected_documents(session) if check is not None else None
+    rig = None
+    if options.rig is not None:
+        try:
+            rig = Rig.load(options.rig)
+        except ValueError as error:
+            raise ReplayError(str(error)) from None
+    source = McapSource(session)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", TruncatedRecordingWarning)
+        try:
+            source.open()
+        except SourceError as error:
+            raise ReplayError(str(error)) from None
+    truncated = any(issubclass(w.category, TruncatedRecordingWarning) for w in caught)
+    recorded = None
+    if options.from_stage == "fusion":
+        try:
+            units = read_fused_units(session)
+        except SourceError as error:
+            raise ReplayError(str(error)) from None
+        if not units:
+            raise ReplayError(f"{session} holds no fused clouds (/fusion/cloud with /fusion/unit): replay it from "
+                              "--from-stage capture")
+        recorded = tuple(FusedCloud.from_world(u.points, u.T_world_bed, u.frame_ids) for u in units)
+    config = RunConfig(fusion=FusionStage(rig=rig, window=options.window, recorded=recorded),
+                       perception=PerceptionStage(options.clustering), live=options.realtime)
+    outputs = Outputs(record=out_dir / "replay.mcap", rrd=rrd, detections=out_dir / "detections.json",
+                      name=f"replay of {session.name}", quiet=quiet)
+    frames = Paced(source) if options.realtime else source
+    try:
+        summary = run_chain(frames, model, config, outputs, sensors=max(1, len(source.sensor_ids)),
+                            on_start=on_start, stop_requested=stop_requested)
+    except SourceError as error:
+        raise ReplayError(str(error)) from None
+    if summary.frames == 0:
+        raise ReplayError(f"{session} holds no readable depth frame")
+    report = None
+    if expected is not None:
+        report = compare(expected, [d.document for d in summary.detections], check)
+    return ReplayResult(summary, truncated, report)
