@@ -571,7 +571,7 @@ def cmd_live(args: argparse.Namespace) -> int:
                       name=f"live {args.camera} {time.strftime('%Y-%m-%d %H:%M:%S')}", quiet=args.quiet)
     with graceful_stop() as stop:
         try:
-            summary = run_chain(source, model, config, outputs, on_start=lambda text: print(f"fused unit: {text}"),
+            summary = run_chain(source, model, config, outputs, on_start=lambda text: print(f"fused unit: {text}", flush=True),
                                 stop_requested=lambda: stop.signal if stop.requested else None,
                                 overwrite=args.overwrite)
         except (SourceError, ValueError, OSError) as error:
@@ -589,7 +589,7 @@ def cmd_live(args: argparse.Namespace) -> int:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     from capture.mcap_io import graceful_stop
-    from pipeline.replay import ReplayError, ReplayOptions, run_replay
+    from pipeline.replay import ReplayError, ReplayOptions, read_expected, run_replay
 
     session = Path(args.session)
     if not session.is_file():
@@ -598,15 +598,21 @@ def cmd_replay(args: argparse.Namespace) -> int:
     rrd = _writable_file(args.rrd or str(out_dir / "replay.rrd"), inputs=(args.session,), suffix=".rrd")
     if (out_dir / "replay.mcap").exists() and (out_dir / "replay.mcap").samefile(session):
         raise CliError(f"{session} is the replay's own output; pick another --out")
+    if args.expected and not args.check:
+        raise CliError("--expected is what --check compares with: add --check")
     model, _ = _load_model(args.model)
     torch_threads(args.threads)
+    try:
+        expected = read_expected(Path(args.expected)) if args.expected else None
+    except ReplayError as error:
+        raise CliError(str(error)) from None
     options = ReplayOptions(args.from_stage, args.speed == "realtime", Path(args.rig) if args.rig else None,
                             args.window, args.clustering)
     with graceful_stop() as stop:
         try:
             result = run_replay(session, model, out_dir, rrd, options, _tolerances(args) if args.check else None,
                                 quiet=args.quiet, stop_requested=lambda: stop.signal if stop.requested else None,
-                                on_start=lambda text: print(f"fused unit: {text}"))
+                                on_start=lambda text: print(f"fused unit: {text}", flush=True), expected=expected)
         except ReplayError as error:
             raise CliError(str(error)) from None
     summary = result.summary
@@ -818,7 +824,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     replay = sub.add_parser("replay", help="re-run fusion and perception on a recorded session; --check "
                             "compares with the detections it recorded")
-    replay.add_argument("session", help="a session .mcap (from live, record or demo)")
+    replay.add_argument("session", help="a session .mcap (from live, record or demo) or a RealSense device file "
+                        "(.db3, played through the driver)")
     replay.add_argument("--out", default="replay", help="output folder (default ./replay): replay.mcap, "
                         "detections.json, replay.rrd")
     replay.add_argument("--rrd", help="the Rerun recording (default OUT/replay.rrd)")
@@ -831,6 +838,8 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument("--window", type=_positive(int), help="one camera without a rig: fuse the last N frames")
     replay.add_argument("--check", action="store_true", help="compare the new caps with the recorded ones unit by "
                         "unit; exit 1 when a cap is lost, gained or changed beyond the tolerances")
+    replay.add_argument("--expected", help="--check against these detections (JSON: one document or a list, one "
+                        "per fused unit) instead of the session's own")
     replay.add_argument("--tol-center-mm", type=_positive(float), default=2.0, help="default 2")
     replay.add_argument("--tol-axis-deg", type=_positive(float), default=3.0, help="default 3")
     replay.add_argument("--tol-radius-pct", type=_positive(float), default=5.0, help="default 5")

@@ -36,11 +36,25 @@ class ReplayResult:
     check: CheckReport | None
 
 
+def read_expected(path: Path) -> list[dict]:
+    """Detection documents from a JSON file: a list of them (one per fused unit) or a single one."""
+    import json
+
+    try:
+        documents = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise ReplayError(f"{path} is not readable JSON: {error}") from None
+    if isinstance(documents, dict):
+        documents = [documents]
+    if not isinstance(documents, list) or not all(isinstance(d, dict) and isinstance(d.get("mushrooms"), list)
+                                                  for d in documents):
+        raise ReplayError(f"{path} holds no detection documents ({{\"mushrooms\": [...]}} or a list of them)")
+    return documents
+
+
 def expected_documents(session: Path) -> list[dict]:
     """The detection documents a recording carries: its /perception/mushrooms_json messages, or, for a
     device file or a session without them, ``<session stem>.expected.json`` beside it (a list)."""
-    import json
-
     from capture.mcap_io import read_documents
     from capture.source import SourceError
 
@@ -53,23 +67,18 @@ def expected_documents(session: Path) -> list[dict]:
         if documents:
             return documents
     if sidecar.is_file():
-        try:
-            documents = json.loads(sidecar.read_text())
-        except (OSError, json.JSONDecodeError) as error:
-            raise ReplayError(f"{sidecar} is not a list of detection documents: {error}") from None
-        if isinstance(documents, list) and all(isinstance(d, dict) for d in documents):
-            return documents
-        raise ReplayError(f"{sidecar} is not a list of detection documents")
+        return read_expected(sidecar)
     raise ReplayError(f"{session} records no detections (/perception/mushrooms_json) and has no {sidecar.name} "
                       "beside it: nothing to check against")
 
 
 def run_replay(session: Path, model, out_dir: Path, rrd: Path | None, options: ReplayOptions = ReplayOptions(),
                check: Tolerances | None = None, quiet: bool = False, stop_requested=lambda: None,
-               on_start=None) -> ReplayResult:
-    """Replay ``session`` into ``out_dir`` (replay.mcap: the session's frames with the new fusion and
-    perception topics; detections.json: the last unit's caps) and ``rrd``; with ``check``, compare
-    every unit's caps with those the session recorded."""
+               on_start=None, expected: list[dict] | None = None) -> ReplayResult:
+    """Replay ``session`` (an MCAP session, or a RealSense device file through the driver) into
+    ``out_dir`` (replay.mcap: the session's frames with the new fusion and perception topics;
+    detections.json: the last unit's caps) and ``rrd``; with ``check``, compare every unit's caps with
+    ``expected``, by default those the session recorded."""
     from capture.mcap_io import McapSource, TruncatedRecordingWarning, read_fused_units
     from capture.source import Paced, SourceError
     from fusion.cloud import FusedCloud
@@ -77,20 +86,29 @@ def run_replay(session: Path, model, out_dir: Path, rrd: Path | None, options: R
     from pipeline.runner import FusionStage, PerceptionStage, RunConfig
     from pipeline.session import Outputs, run_chain
 
-    expected = expected_documents(session) if check is not None else None
+    if check is not None and expected is None:
+        expected = expected_documents(session)
     rig = None
     if options.rig is not None:
         try:
             rig = Rig.load(options.rig)
         except ValueError as error:
             raise ReplayError(str(error)) from None
-    source = McapSource(session)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", TruncatedRecordingWarning)
-        try:
-            source.open()
-        except SourceError as error:
-            raise ReplayError(str(error)) from None
+    if session.suffix == ".db3":
+        if options.from_stage == "fusion":
+            raise ReplayError(f"{session} is a RealSense device file: it holds frames only, replay it from capture")
+        from capture.realsense import RealSenseConfig, RealSenseSource
+
+        source, sensor_ids, caught = RealSenseSource(RealSenseConfig(playback=session)), ["camera"], []
+    else:
+        source = McapSource(session)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", TruncatedRecordingWarning)
+            try:
+                source.open()
+            except SourceError as error:
+                raise ReplayError(str(error)) from None
+        sensor_ids = source.sensor_ids
     truncated = any(issubclass(w.category, TruncatedRecordingWarning) for w in caught)
     recorded = None
     if options.from_stage == "fusion":
@@ -108,9 +126,9 @@ def run_replay(session: Path, model, out_dir: Path, rrd: Path | None, options: R
                       name=f"replay of {session.name}", quiet=quiet)
     frames = Paced(source) if options.realtime else source
     try:
-        summary = run_chain(frames, model, config, outputs, sensors=max(1, len(source.sensor_ids)),
+        summary = run_chain(frames, model, config, outputs, sensors=max(1, len(sensor_ids)),
                             on_start=on_start, stop_requested=stop_requested)
-    except SourceError as error:
+    except (SourceError, ValueError) as error:
         raise ReplayError(str(error)) from None
     if summary.frames == 0:
         raise ReplayError(f"{session} holds no readable depth frame")

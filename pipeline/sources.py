@@ -24,6 +24,8 @@ class VirtualBedRig:
     fps: float = 15.0
     start_ns: int = 0
     """Capture time of the first frame (live runs give the wall clock)."""
+    mushrooms: tuple[int, int] | None = None
+    """Caps on the bed, inclusive range (default: the generator's)."""
 
 
 def virtual_bed_source(rig: VirtualBedRig = VirtualBedRig(), sensor_id: str = "virtual"):
@@ -31,7 +33,8 @@ def virtual_bed_source(rig: VirtualBedRig = VirtualBedRig(), sensor_id: str = "v
     from capture.virtual import VirtualCameraConfig, VirtualSource, circle_rig
     from perception.synthetic.scene import SceneConfig, build_bed
 
-    bed = build_bed(np.random.default_rng(rig.seed), SceneConfig())
+    bed = build_bed(np.random.default_rng(rig.seed),
+                    SceneConfig(mushrooms=rig.mushrooms) if rig.mushrooms else SceneConfig())
     config = VirtualCameraConfig(turntable=circle_rig(np.zeros(3), rig.radius, rig.height), views=rig.views,
                                  fps=rig.fps, seed=rig.seed, sensor_id=sensor_id, start_ns=rig.start_ns)
     return VirtualSource(bed.vertices, bed.triangles, config), bed

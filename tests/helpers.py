@@ -33,3 +33,12 @@ def write_tiny_weights(path):
         model.head[-1].bias[0] = -3.0
     save_weights(model, path, iterations=0)
     return path
+
+
+def rrd_timelines(path, entity: str) -> set[str]:
+    """The timelines an entity's rows of a .rrd file are logged on."""
+    names = set()
+    for chunk in RrdReader(str(path)).stream().to_chunks():
+        if str(chunk.entity_path) == entity:
+            names.update(chunk.timeline_names)
+    return names
