@@ -11,7 +11,7 @@ CAMERA_RANGE = 3.0
 
 
 def estimate_bed_frame(points: np.ndarray, distance: float = 0.008, seed: int = 0,
-                       robust_scale: float = 0.05) -> np.ndarray:
+                       robust_scale: float = 0.05, fit_points: int | None = None) -> np.ndarray:
     """T_input_bed for a cloud of a bed (N, 3) in metres, from a RANSAC plane through the soil (inliers
     within ``distance``) refined by Tukey-weighted least squares of scale ``robust_scale`` (metres).
 
@@ -19,7 +19,8 @@ def estimate_bed_frame(points: np.ndarray, distance: float = 0.008, seed: int = 
     ``CAMERA_RANGE`` of the cloud (a camera-frame cloud), otherwise the side where most off-plane points
     lie (caps stand up from the soil): a shifted or georeferenced cloud's origin says nothing of it.
     The origin is the centroid's projection onto the plane; x follows the input's x projected onto
-    the plane.
+    the plane. With ``fit_points``, the plane is fitted to about that many of the points (every k-th):
+    a plane needs no more; the centroid is still that of all of them.
     """
     if len(points) < 3:
         raise ValueError("too few points to find the bed plane")
@@ -27,12 +28,14 @@ def estimate_bed_frame(points: np.ndarray, distance: float = 0.008, seed: int = 
     spread = np.linalg.eigvalsh(np.cov(points.T))
     if not spread[1] > 1e-12 * max(spread[2], 1e-300):
         raise ValueError("the points lie on a line or at one point, not on a bed")
+    centroid = points.mean(0)
+    if fit_points is not None and len(points) > fit_points:
+        points = points[::len(points) // fit_points]
     o3d.utility.random.seed(seed)
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     (a, b, c, d), _ = cloud.segment_plane(distance, 3, 200)
     normal, offset = _robust_plane(points, np.array([a, b, c]) / np.linalg.norm([a, b, c]),
                                    d / np.linalg.norm([a, b, c]), robust_scale)
-    centroid = points.mean(0)
     if abs(offset) > 0.05 and np.linalg.norm(centroid) < CAMERA_RANGE:
         up = normal if offset > 0 else -normal
     else:

@@ -141,9 +141,11 @@ def prepare_view(frame: DepthFrame, config: RegistrationConfig = RegistrationCon
 def _halve_depth(depth: np.ndarray, jump: float) -> np.ndarray:
     """Half-resolution depth: the mean of each 2x2 block that is fully valid and spans no edge."""
     rows, cols = depth.shape[0] // 2, depth.shape[1] // 2
-    blocks = depth[:2 * rows, :2 * cols].reshape(rows, 2, cols, 2)
-    low, high = blocks.min((1, 3)), blocks.max((1, 3))
-    return np.where((low > 0) & (high - low < jump), blocks.mean((1, 3)), np.float32(0.0)).astype(np.float32)
+    corners = [depth[r:2 * rows:2, c:2 * cols:2].astype(np.float32) for r in (0, 1) for c in (0, 1)]
+    low = np.minimum(np.minimum(corners[0], corners[1]), np.minimum(corners[2], corners[3]))
+    high = np.maximum(np.maximum(corners[0], corners[1]), np.maximum(corners[2], corners[3]))
+    mean = ((corners[0] + corners[1]) + (corners[2] + corners[3])) * np.float32(0.25)
+    return np.where((low > 0) & (high - low < jump), mean, np.float32(0.0))
 
 
 def _halved_intrinsics(matrix: np.ndarray, times: int) -> np.ndarray:

@@ -314,3 +314,60 @@ def test_bed_plane_follows_cloddy_soil(seed):
 def test_report_times():
     for name, seconds in TIMES.items():
         print(f"{name}: {seconds:.1f} s")
+
+
+def test_voxel_merge_gives_each_voxels_mean_and_takes_frames_back():
+    from fusion.integrate import CameraPoints, VoxelMerge
+
+    rng = np.random.default_rng(3)
+    views = [CameraPoints(rng.uniform(-0.01, 0.01, (300, 3)).astype(np.float32),
+                          np.tile(np.float32([0, 0, -1]), (300, 1)), None) for _ in range(3)]
+    poses = [np.eye(4) for _ in range(3)]
+    poses[1][:3, 3] = [0.003, 0.0, 0.001]
+    moved = np.eye(4)
+    moved[:3, 3] = [-0.002, 0.004, 0.0]
+    merge = VoxelMerge(0.004, with_color=False)
+    merge.FOLD = 2
+    for k in range(3):
+        merge.add(k, views[k], moved if k == 2 else poses[k])
+    merge.add(2, views[2], poses[2])  # refinement moved frame 2 back: its first sums leave the total
+    surface = merge.surface()
+    # the reference: every point at its final pose, grouped by voxel in a plain dictionary
+    groups: dict[tuple, list] = {}
+    for view, pose in zip(views, poses):
+        for point in transform_points(pose, view.points.astype(np.float64)):
+            groups.setdefault(tuple(np.floor(point / 0.004).astype(int)), []).append(point)
+    expected = np.array(sorted(tuple(np.mean(points, 0)) for points in groups.values()))
+    got = np.array(sorted(map(tuple, surface.points.astype(np.float64))))
+    assert got.shape == expected.shape and np.abs(got - expected).max() < 1e-6
+    assert np.allclose(surface.normals, [0, 0, -1], atol=1e-6)
+
+
+def test_depth_normals_of_a_tilted_plane_face_the_camera():
+    from fusion.integrate import depth_normals
+
+    intrinsics = CameraIntrinsics(80, 60, 70.0, 70.0, 39.5, 29.5)
+    normal = np.array([0.3, -0.2, -1.0]) / np.linalg.norm([0.3, -0.2, -1.0])
+    u = (np.arange(80) - 39.5) / 70.0
+    v = (np.arange(60) - 29.5) / 70.0
+    rays = np.stack(np.broadcast_arrays(u[None, :], v[:, None], np.ones((60, 80))), -1)
+    depth = (-0.4 / (rays @ normal)).astype(np.float32)  # the plane n . p = -0.4, 0.4 m from the camera
+    depth[20:25, 30:40] = 0.0  # a hole: its rim falls back to the ray towards the camera
+    normals = depth_normals(depth, intrinsics)
+    inner = np.zeros(depth.shape, bool)
+    inner[1:-1, 1:-1] = True
+    inner[19:26, 29:41] = False
+    assert np.degrees(np.arccos(np.clip(normals[inner] @ normal, -1, 1))).max() < 0.05  # float32 depth
+    rim = normals[19, 35]
+    assert np.allclose(rim, -rays[19, 35] / np.linalg.norm(rays[19, 35]), atol=1e-6)
+
+
+def test_streaming_and_batch_fusion_give_the_same_surface(session, streamed):
+    batch = fuse(session.blind, FusionConfig(), session.rig)
+    stream = streamed[-1]
+    distance, _ = cKDTree(batch.world_points).query(stream.world_points)
+    rotation, _ = pose_change(stream.T_world_bed[None], batch.T_world_bed[None])
+    print(f"stream to batch: median {1000 * np.median(distance):.3f} mm, p95 {1000 * np.percentile(distance, 95):.3f} mm; "
+          f"bed frames {rotation[0]:.4f} deg apart")
+    assert np.median(distance) < 0.0008 and abs(len(stream) - len(batch)) < 0.02 * len(batch)
+    assert rotation[0] < 0.05
