@@ -7,7 +7,6 @@ centre of its wide base. ``R`` maps the cap frame to the bed frame, R = R_y(thet
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -69,6 +68,18 @@ def rotation_from_axis(axis: np.ndarray) -> np.ndarray:
     rotation[..., 0, 1], rotation[..., 1, 1], rotation[..., 2, 1] = -sin_y * y, c, -cos_y * y
     rotation[..., 2] = u
     return rotation
+
+
+def cap_wireframe(centers: np.ndarray, rotations: np.ndarray, scales: np.ndarray, samples: int = 48) -> np.ndarray:
+    """Points on each cap's rim (the wide base of its half-ellipsoid), then on two meridians of its
+    dome, ``samples`` each: shape (K, 3 * samples, 3), for drawing caps as wire domes."""
+    angle = np.linspace(0.0, 2 * np.pi, samples, endpoint=False)
+    arc = np.linspace(0.0, np.pi, samples)
+    local = np.concatenate([np.stack([np.cos(angle), np.sin(angle), 0 * angle], 1),
+                            np.stack([np.cos(arc), 0 * arc, np.sin(arc)], 1),
+                            np.stack([0 * arc, np.cos(arc), np.sin(arc)], 1)])
+    scaled = local[None] * np.asarray(scales, np.float64)[:, None]
+    return np.asarray(centers, np.float64)[:, None] + np.einsum("kij,knj->kni", rotations, scaled)
 
 
 def tilt_deg(axis: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
@@ -150,7 +161,3 @@ def detections_document(mushrooms: list[Mushroom], frame: str) -> dict:
     """The detection document of DESIGN.md section 3, as a dict (what the JSON file and the MCAP hold)."""
     return {"frame": frame, "units": "m", "mushrooms": [m.to_json() for m in mushrooms]}
 
-
-def detections_json(mushrooms: list[Mushroom], frame: str) -> str:
-    """The detection JSON document of DESIGN.md section 3."""
-    return json.dumps(detections_document(mushrooms, frame), indent=1)

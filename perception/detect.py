@@ -124,20 +124,55 @@ def _nearest_voxel(points: np.ndarray, voxel: float, coords: np.ndarray, centroi
     return index
 
 
+def merge_pieces(labels: np.ndarray, fit: CapFit, ratio: float) -> np.ndarray | None:
+    """Voxel labels with the caps whose fitted centres lie closer than ``ratio`` times the smaller
+    fitted radius joined into one (relabelled 0..K-1, largest first); None when no two are that close.
+    The smaller radius, because one bad fit with a huge radius would otherwise swallow its neighbours."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    radius = fit.scales[:, :2].mean(1)
+    distance = np.linalg.norm(fit.centers[:, None] - fit.centers[None], axis=2)
+    close = np.triu(distance < ratio * np.minimum(radius[:, None], radius[None]), 1)
+    if not close.any():
+        return None
+    i, j = np.nonzero(close)
+    _, group = connected_components(coo_matrix((np.ones(len(i)), (i, j)), shape=(len(radius),) * 2), directed=False)
+    merged = np.where(labels >= 0, group[np.maximum(labels, 0)], -1)
+    size = np.bincount(merged[merged >= 0], minlength=group.max() + 1)
+    rank = np.empty(len(size), np.int64)
+    rank[np.argsort(-size, kind="stable")] = np.arange(len(size))
+    return np.where(merged >= 0, rank[np.maximum(merged, 0)], -1)
+
+
+def find_caps(prediction: VoxelPrediction, voxel: float, cluster_config: ClusterConfig = ClusterConfig(),
+              height: str = "free", axis: str = "surface", timings: dict | None = None) -> tuple[np.ndarray, CapFit]:
+    """Voxel labels and fitted caps from the network's encoding: clusters of collapsed points, their
+    poses, and pieces of one cap merged (``ClusterConfig.merge_ratio``, at most three rounds)."""
+    timings = {} if timings is None else timings
+    start = time.perf_counter()
+    labels = cluster(prediction.centroids, prediction.centers, prediction.existence, voxel, cluster_config)
+    timings["instances"] = 1000 * (time.perf_counter() - start)
+    start = time.perf_counter()
+    arguments = (prediction.centroids, prediction.centers, prediction.orientation, prediction.existence)
+    fit = fit_caps(*arguments, labels, height, axis)
+    for _ in range(3 if cluster_config.merge_ratio else 0):
+        merged = merge_pieces(labels, fit, cluster_config.merge_ratio)
+        if merged is None:
+            break
+        labels = merged
+        fit = fit_caps(*arguments, labels, height, axis)
+    timings["pose"] = 1000 * (time.perf_counter() - start)
+    return labels, fit
+
+
 def detect_points(model: MushroomNet, points: np.ndarray, cluster_config: ClusterConfig = ClusterConfig()) -> SceneResult:
     """Caps in a cloud already in the bed frame (z up, metres)."""
     timings = {}
     start = time.perf_counter()
     prediction = predict(model, points)
     timings["network"] = 1000 * (time.perf_counter() - start)
-    start = time.perf_counter()
-    voxel_labels = cluster(prediction.centroids, prediction.centers, prediction.existence, model.config.voxel,
-                           cluster_config)
-    timings["instances"] = 1000 * (time.perf_counter() - start)
-    start = time.perf_counter()
-    fit = fit_caps(prediction.centroids, prediction.centers, prediction.orientation, prediction.existence,
-                   voxel_labels)
-    timings["pose"] = 1000 * (time.perf_counter() - start)
+    voxel_labels, fit = find_caps(prediction, model.config.voxel, cluster_config, timings=timings)
     point_labels = voxel_labels[prediction.point_to_voxel]
     mushrooms = [Mushroom(k, fit.centers[k], fit.rotations[k], fit.scales[k], float(fit.scores[k]),
                           np.flatnonzero(point_labels == k)) for k in range(len(fit.centers))]
@@ -190,10 +225,7 @@ def evaluate_on_scenes(model: MushroomNet, scenes, methods=("meanshift", "dbscan
     for scene in tqdm(scenes, desc="evaluating", unit="scene", disable=not progress, leave=False):
         prediction = predict(model, scene.points, zoom=zoom)
         for method in methods:
-            labels = cluster(prediction.centroids, prediction.centers, prediction.existence, model.config.voxel,
-                             ClusterConfig(method=method))
-            fit = fit_caps(prediction.centroids, prediction.centers, prediction.orientation, prediction.existence,
-                           labels, height, axis)
+            _, fit = find_caps(prediction, model.config.voxel, ClusterConfig(method=method), height, axis)
             preds[method].append(SceneCaps(fit.centers, fit.rotations, fit.scales, fit.scores))
         visible = ground_truth_mask(scene)
         gts.append(SceneCaps(scene.centers[visible], scene.rotations[visible], scene.scales[visible]))

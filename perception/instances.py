@@ -44,6 +44,10 @@ class ClusterConfig:
     """DBSCAN neighbourhood in voxels (input points are about one voxel apart)."""
     min_points: int = 4
     """Clusters smaller than this are dropped (noise, slivers of caps seen edge-on)."""
+    merge_ratio: float | None = 1.2
+    """Caps whose fitted centres lie closer than this times the smaller fitted radius are pieces of one
+    cap and are merged (``perception.detect.find_caps``): caps larger than the training beds' come out
+    in two or three pieces. Touching caps are at least 2 smaller radii apart. None: no merging."""
     seeding: str = "peaks"
     """MeanShift seeds: "bins" = scikit-learn's bin seeding (every bandwidth-sized bin holding
     min_points / 2 collapsed points); "peaks" = only those of them that hold at least as many points as
@@ -55,6 +59,8 @@ class ClusterConfig:
     sessions 16-23, session 17)."""
 
     def __post_init__(self) -> None:
+        if self.merge_ratio is not None and not self.merge_ratio > 0:
+            raise ValueError(f"merge_ratio must be positive (or None), got {self.merge_ratio}")
         if self.method not in METHODS:
             raise ValueError(f"unknown clustering method {self.method!r}; choose one of {METHODS}")
         if self.seeding not in SEEDINGS:

@@ -6,6 +6,8 @@ import numpy as np
 import rerun as rr
 from scipy.spatial.transform import Rotation
 
+from perception.cap import cap_wireframe
+
 
 def log_points(rec: rr.RecordingStream, entity: str, points: np.ndarray, colors: np.ndarray | None = None,
                class_ids: np.ndarray | None = None, radius: float = 0.0015) -> None:
@@ -34,24 +36,19 @@ def log_caps(rec: rr.RecordingStream, entity: str, centers: np.ndarray, rotation
 
 
 
-def cap_rims(centers: np.ndarray, rotations: np.ndarray, scales: np.ndarray, samples: int = 32) -> np.ndarray:
-    """Each cap's rim (the wide base of its half-ellipsoid) as ``samples`` points, shape (K, samples, 3)."""
-    angle = np.linspace(0.0, 2 * np.pi, samples)
-    local = np.stack([np.cos(angle), np.sin(angle), np.zeros_like(angle)], 1)
-    return centers[:, None] + np.einsum("kij,knj->kni", rotations, local[None] * scales[:, None])
-
-
 def log_caps_in_image(rec: rr.RecordingStream, entity: str, centers: np.ndarray, rotations: np.ndarray,
                       scales: np.ndarray, T_world_camera: np.ndarray, intrinsics, color=(230, 60, 40)) -> None:
     """The caps' rims as seen by a camera (``entity`` under its pinhole), over its depth image."""
     if len(centers) == 0:
         rec.log(entity, rr.Clear(recursive=False))
         return
-    rims = cap_rims(centers, rotations, scales).reshape(-1, 3)
+    samples = 48
+    rims = cap_wireframe(centers, rotations, scales, samples)[:, :samples].reshape(-1, 3)
     T = np.linalg.inv(np.asarray(T_world_camera, np.float64))
     camera = rims @ T[:3, :3].T + T[:3, 3]
     depth = np.maximum(camera[:, 2], 1e-6)
     pixels = np.stack([intrinsics.fx * camera[:, 0] / depth + intrinsics.cx,
                        intrinsics.fy * camera[:, 1] / depth + intrinsics.cy], 1).reshape(len(centers), -1, 2)
     in_front = (camera[:, 2] > 0).reshape(len(centers), -1).all(1)
-    rec.log(entity, rr.LineStrips2D(pixels[in_front], colors=color, radii=1.5))
+    closed = np.concatenate([pixels, pixels[:, :1]], axis=1)
+    rec.log(entity, rr.LineStrips2D(closed[in_front], colors=color, radii=1.5))

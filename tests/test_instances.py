@@ -136,3 +136,38 @@ def test_climbing_the_seeds_is_meanshifts_own_step_and_changes_no_label(monkeypa
     monkeypatch.setattr(instances, "CLIMB_MAX_STEPS", 0)
     np.testing.assert_array_equal(cluster(collapsed, collapsed, np.ones(len(collapsed)), 0.0045), labels)
     assert len(set(labels[labels >= 0])) >= 8
+
+
+def _fit(centers, radii):
+    from perception.cap import rotation_from_axis
+    from perception.pose import CapFit
+
+    centers = np.asarray(centers, np.float64)
+    radii = np.asarray(radii, np.float64)
+    scales = np.stack([radii, radii, 2 * radii / 3], 1)
+    rotations = rotation_from_axis(np.tile([0.0, 0.0, 1.0], (len(centers), 1)))
+    return CapFit(centers, rotations, scales, np.ones(len(centers)), np.full(len(centers), 10))
+
+
+def test_pieces_of_one_cap_are_merged_and_touching_caps_are_not():
+    from perception.detect import merge_pieces
+
+    # caps 0 and 1: two halves of a 34 mm cap, 12 mm apart; caps 2 and 3: two 20 mm caps touching
+    # (centres 40 mm apart); cap 4: a bad fit with a 90 mm radius beside cap 3
+    fit = _fit([[0, 0, 0], [0.012, 0, 0], [0.2, 0, 0], [0.24, 0, 0], [0.27, 0.03, 0]],
+               [0.030, 0.028, 0.020, 0.020, 0.090])
+    labels = np.repeat(np.arange(5), [30, 20, 25, 25, 10])
+    labels = np.concatenate([labels, [-1, -1]])
+    merged = merge_pieces(labels, fit, 1.2)
+    assert merged is not None and merged[-1] == -1 and merged[-2] == -1
+    groups = [set(merged[labels == k]) for k in range(5)]
+    assert all(len(g) == 1 for g in groups)
+    assert groups[0] == groups[1] and len({*groups[2], *groups[3], *groups[4], *groups[0]}) == 4
+    assert merged[labels == 0][0] == 0  # the merged cap, 50 voxels, is the largest
+
+
+def test_no_merge_when_no_two_caps_are_close():
+    from perception.detect import merge_pieces
+
+    fit = _fit([[0, 0, 0], [0.05, 0, 0]], [0.02, 0.02])
+    assert merge_pieces(np.array([0, 0, 1, 1]), fit, 1.2) is None
