@@ -1,5 +1,6 @@
 """Does fusion help perception? The shipped model on the same virtual beds seen from 1 view, 2 cameras,
-4 views and 18 views (848x480, D405-like noise, true poses refined by ICP), fused and detected.
+4 views and 18 views (848x480, D405-like noise, true poses refined by ICP), fused and detected by the
+product's runner (each setting's frames as one fused unit).
 
 A cap counts as ground truth in a setting when at least 5 fused points lie on its cap surface
 (within 2 mm), so every setting is scored on the caps it could see; n_gt says how many that was.
@@ -21,12 +22,13 @@ import numpy as np  # noqa: E402
 import open3d as o3d  # noqa: E402
 import torch  # noqa: E402
 
-from fusion.cloud import FusionConfig, fuse  # noqa: E402
-from perception.detect import DEFAULT_WEIGHTS, detect_points, transform_result  # noqa: E402
+from capture.source import Source  # noqa: E402
+from perception.detect import DEFAULT_WEIGHTS  # noqa: E402
 from perception.evaluate import SceneCaps, evaluate  # noqa: E402
 from perception.train import load_weights  # noqa: E402
-from pipeline.sources import VirtualBedRig, virtual_bed_source  # noqa: E402
 from pipeline.process import reuse_freed_memory  # noqa: E402
+from pipeline.runner import RunConfig, Runner  # noqa: E402
+from pipeline.sources import VirtualBedRig, virtual_bed_source  # noqa: E402
 
 MIN_CAP_POINTS, ON_SURFACE = 5, 0.002
 SETTINGS = {"1 view": (0,), "2 cameras (opposite sides)": (0, 9), "4 views": (0, 4, 9, 13),
@@ -45,6 +47,16 @@ def visible_caps(bed, world_points: np.ndarray) -> np.ndarray:
     on_cap = (distance <= ON_SURFACE) & bed.triangle_is_cap[triangle]
     counts = np.bincount(bed.triangle_instance[triangle][on_cap], minlength=len(bed.centers))
     return np.flatnonzero(counts >= MIN_CAP_POINTS)
+
+
+class Frames(Source):
+    """Frames already rendered, as a source for the runner."""
+
+    def __init__(self, frames: list):
+        self.frames = iter(frames)
+
+    def read(self):
+        return next(self.frames, None)
 
 
 def main() -> None:
@@ -66,8 +78,8 @@ def main() -> None:
         frames = list(source)
         for name, indices in SETTINGS.items():
             start = time.perf_counter()
-            fused = fuse([frames[k] for k in indices], FusionConfig(angles="pose"))
-            result = transform_result(detect_points(model, fused.points), fused.T_world_bed, "world")
+            summary = Runner(Frames([frames[k] for k in indices]), model, RunConfig(), []).run()
+            fused, result = summary.last_unit.cloud, summary.detections[-1].result
             seen = visible_caps(bed, fused.world_points)
             preds[name].append(SceneCaps(result.fit.centers, result.fit.rotations, result.fit.scales,
                                          result.fit.scores))

@@ -523,6 +523,8 @@ class McapSource(Source):
 FUSED_CLOUD_TOPIC = "/fusion/cloud"
 DETECTIONS_TOPIC = "/perception/mushrooms_json"
 CAPS_TOPIC = "/perception/mushrooms"
+CAP_OUTLINES_TOPIC = "/perception/cap_outlines"
+"""The caps as wire domes in a point cloud, for viewers that draw no SceneUpdate."""
 UNIT_TOPIC = "/fusion/unit"
 """JSON per fused cloud: its frames and its exact T_world_bed, so replay can start from fusion's output."""
 

@@ -211,7 +211,8 @@ def train_config(args: argparse.Namespace):
                        weight_residual=args.weight_residual, weight_orientation=args.weight_orientation,
                        orientation_on_caps=args.orientation_on_caps, cap_balance=args.cap_balance,
                        scale_jitter=tuple(args.scale_jitter), average_from=args.average_from, zoom=args.zoom,
-                       scene=SceneConfig(voxel=args.spacing or SceneConfig.voxel),
+                       scene=SceneConfig(voxel=args.spacing or SceneConfig.voxel, scale=tuple(args.cap_scale),
+                                         jitter=tuple(args.spacing_jitter)),
                        init_weights=str(Path(args.init).resolve()) if args.init else None)
 
 
@@ -223,9 +224,10 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise CliError(f"unknown network {args.network!r}; choose one of {sorted(NETWORK_PRESETS)}")
     if args.init and not args.resume and not Path(args.init).is_file():
         raise CliError(f"--init: no weights file at {args.init}")
-    low, high = args.scale_jitter
-    if low > high:
-        raise CliError(f"--scale-jitter wants LOW HIGH with LOW <= HIGH, got {low} {high}")
+    for flag in ("scale_jitter", "spacing_jitter", "cap_scale"):
+        low, high = getattr(args, flag)
+        if low > high:
+            raise CliError(f"--{flag.replace('_', '-')} wants LOW HIGH with LOW <= HIGH, got {low} {high}")
     if any(later <= earlier for earlier, later in zip(args.milestones, args.milestones[1:])):
         raise CliError(f"--milestones must increase, got {' '.join(map(str, args.milestones))}")
     config = train_config(args)
@@ -302,7 +304,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
 
     from capture.frames import transform_points
     from fusion.bed import estimate_bed_frame
-    from perception.cap import detections_json
+    from perception.cap import detections_document
     from perception.detect import detect_points, log_rerun, transform_result
     from perception.instances import ClusterConfig
     from pipeline.clouds import load_cloud
@@ -339,9 +341,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     result = transform_result(result, T_input_bed, frame)
     print(f"{len(result.mushrooms)} caps in {args.cloud} ({len(points)} points, frame: {frame}, metres)")
     _print_caps(result, T_input_bed[:3, 2])
-    text = detections_json(result.mushrooms, frame)
-    payload = json.loads(text)
-    payload["T_input_bed"] = T_input_bed.tolist()
+    payload = {**detections_document(result.mushrooms, frame), "T_input_bed": T_input_bed.tolist()}
     _replace_file(out, json.dumps(payload, indent=1))
     with rerun_stream(rrd) as rec:
         if rec is not None:
@@ -723,6 +723,10 @@ def build_parser() -> argparse.ArgumentParser:
                        f"shipped model's is {SHIPPED_ZOOM})")
     train.add_argument("--spacing", type=_spacing, help=f"point spacing of the training beds in metres (default "
                        f"{SPACING_HELP})")
+    train.add_argument("--spacing-jitter", type=_positive(float), nargs=2, default=[0.8, 1.2], metavar=("LOW", "HIGH"),
+                       help="each bed's point spacing is --spacing times a factor from [LOW, HIGH] (default 0.8 1.2)")
+    train.add_argument("--cap-scale", type=_positive(float), nargs=2, default=[0.5, 1.5], metavar=("LOW", "HIGH"),
+                       help="cap scale s of the training beds, a 40 mm cap at s = 1 (default 0.5 1.5, the paper's)")
     train.add_argument("--init", help="start from these weights (fine-tuning), e.g. perception/weights/default.pt; "
                        "the run is read at --zoom, not at its start's zoom")
     train.add_argument("--resume", action="store_true", help="continue the checkpoint in --out exactly")

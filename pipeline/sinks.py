@@ -118,18 +118,29 @@ class McapSink(Sink):
                                                   "frame_ids": list(unit.cloud.frame_ids)}, t)
 
     def detected(self, detection: Detection) -> None:
-        from capture.mcap_io import CAPS_TOPIC, DETECTIONS_TOPIC
+        from capture.mcap_io import CAP_OUTLINES_TOPIC, CAPS_TOPIC, DETECTIONS_TOPIC
 
         t = detection.unit.last_frame_ns
         document = {**detection.document, "unit": detection.unit.index}
+        outlines = cap_outlines(detection.result.fit)
         with self._lock:
             self.recorder.write_scene_update(CAPS_TOPIC, caps_scene_update(detection, t), t)
+            self.recorder.write_point_cloud(CAP_OUTLINES_TOPIC, outlines, t, "world",
+                                            colors=np.tile(np.uint8(CAP_COLOR), (len(outlines), 1)))
             self.recorder.write_json(DETECTIONS_TOPIC, document, t)
 
     def close(self, ok: bool) -> None:
         """Finalise the file; one that got no frame to copy is discarded (an earlier file of its name stays)."""
         with self._lock:
             self.recorder.close(discard=self.frames and not self.recorder.frames)
+
+
+def cap_outlines(fit) -> np.ndarray:
+    """The caps as wire domes in one (N, 3) array, for viewers that draw point clouds but no
+    SceneUpdate from an MCAP (Rerun)."""
+    from perception.cap import cap_wireframe
+
+    return cap_wireframe(fit.centers, fit.rotations, fit.scales).reshape(-1, 3).astype(np.float32)
 
 
 def caps_scene_update(detection: Detection, log_time_ns: int):
