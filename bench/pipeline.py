@@ -5,11 +5,13 @@
   latency from each turn's last frame to its detections (median, quartiles).
 - max: the same session replayed as fast as the chain runs (``--speed max``), frames per second, against
   the batch chain (every frame read, then ``fuse`` on the turn, then ``detect_points``) in the same run.
-- soak (``--soak-minutes M``): virtual turns streamed through the runner as fast as it runs, recorded to
-  a scratch MCAP, for M minutes; prints RSS every minute, the first and last 10 minutes' peaks, turns
-  fused and detected, and frames recorded against frames captured.
+- soak (``--soak-minutes M``): virtual turns streamed through the runner at the camera's pace
+  (``--soak-speed``, 0: as fast as the chain runs), recorded to a scratch MCAP, for M minutes; prints
+  RSS every minute, the first and last 10 minutes' peaks, turns fused and detected, and frames recorded
+  against frames captured.
 
-Usage: python bench/pipeline.py [--turns 5] [--soak-minutes 0] [--threads 2]
+Usage: python bench/pipeline.py [--turns 5] [--soak-minutes 0 [--soak-speed 1]] [--threads 2]
+(--turns 0 runs the soak alone)
 """
 
 import sys
@@ -103,13 +105,14 @@ class CyclingTurns(Source):
         return frame
 
 
-def soak(model, minutes: float, folder: Path) -> None:
+def soak(model, minutes: float, speed: float, folder: Path) -> None:
+    from capture.source import Paced
     from pipeline.runner import RunConfig, Runner
     from pipeline.sinks import McapSink
 
     source = CyclingTurns()
     recorder = McapRecorder(folder / "soak.mcap", chunk_size=4 << 20)
-    runner = Runner(source, model, RunConfig(live=True), [McapSink(recorder)])
+    runner = Runner(Paced(source, speed) if speed > 0 else source, model, RunConfig(live=True), [McapSink(recorder)])
     samples: list[tuple[float, float]] = []
     started = time.monotonic()
 
@@ -134,7 +137,7 @@ def soak(model, minutes: float, folder: Path) -> None:
     times, rss = np.array([t for t, _ in samples]), np.array([r for _, r in samples])
     first = rss[times <= 600].max()
     last = rss[times >= times.max() - 600].max()
-    print(f"soak: {times.max() / 60:.1f} min, {summary.frames} frames captured, {frames_recorded} recorded, "
+    print(f"soak at {'max speed' if speed <= 0 else f'{speed:g}x the camera pace'}: {times.max() / 60:.1f} min, {summary.frames} frames captured, {frames_recorded} recorded, "
           f"{summary.units} turns fused, {len(summary.detections)} detected, {summary.dropped_frames} frames and "
           f"{summary.dropped_units} turns dropped before fusion/perception")
     print(f"peak RSS: first 10 min {first:.1f} MB, last 10 min {last:.1f} MB (ratio {last / first:.3f})")
@@ -146,20 +149,24 @@ def main() -> None:
     parser.add_argument("--model", type=Path, default=DEFAULT_WEIGHTS)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--soak-minutes", type=float, default=0.0)
+    parser.add_argument("--soak-speed", type=float, default=1.0)
     args = parser.parse_args()
     reuse_freed_memory()
     torch.set_num_threads(args.threads)
     model, _ = load_weights(args.model)
     with tempfile.TemporaryDirectory(prefix="bench-pipeline-") as scratch:
         folder = Path(scratch)
+        if args.turns == 0:
+            soak(model, args.soak_minutes, args.soak_speed, folder)
+            return
         session = folder / "session.mcap"
-        frames = record_session(session, args.turns)
+        record_session(session, args.turns)
         print(f"session: {args.turns} turns of {VIEWS} views, 848x480 at {FPS:g} fps, "
               f"{session.stat().st_size / 1e6:.1f} MB")
         summary, wall = replay(session, model, realtime=True, out=folder / "realtime")
         latency = np.array([d.latency_seconds for d in summary.detections])
         perception = np.array([d.perception_seconds for d in summary.detections])
-        fusion = np.array([d.unit.fusion_seconds for d in summary.detections])
+        fusion = np.array([d.fusion_seconds for d in summary.detections])
         print(f"realtime: {summary.frames} frames in {wall:.1f} s, {summary.dropped_frames} dropped at the source, "
               f"{summary.dropped_units} turns dropped before perception, {len(latency)} of {args.turns} turns "
               f"detected")
@@ -173,7 +180,7 @@ def main() -> None:
               f"{wall / batch_wall:.2f}x the batch chain's time")
         print(f"peak RSS so far {rss_mb():.0f} MB (current)")
         if args.soak_minutes > 0:
-            soak(model, args.soak_minutes, folder)
+            soak(model, args.soak_minutes, args.soak_speed, folder)
 
 
 if __name__ == "__main__":

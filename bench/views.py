@@ -79,7 +79,7 @@ def main() -> None:
         for name, indices in SETTINGS.items():
             start = time.perf_counter()
             summary = Runner(Frames([frames[k] for k in indices]), model, RunConfig(), []).run()
-            fused, result = summary.last_unit.cloud, summary.detections[-1].result
+            fused, result = summary.last_unit.cloud, summary.last_detection.result
             seen = visible_caps(bed, fused.world_points)
             preds[name].append(SceneCaps(result.fit.centers, result.fit.rotations, result.fit.scales,
                                          result.fit.scores))

@@ -335,7 +335,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
         frame = "input"
     bed_points = transform_points(np.linalg.inv(T_input_bed), points)
     try:
-        result = detect_points(model, bed_points, ClusterConfig(method=args.clustering))
+        result = detect_points(model, bed_points, ClusterConfig(method=args.clustering), zoom=args.zoom)
     except ValueError as error:
         raise CliError(str(error)) from None
     result = transform_result(result, T_input_bed, frame)
@@ -387,10 +387,10 @@ def _detect_session(args: argparse.Namespace) -> int:
         raise CliError(str(error)) from None
     if not summary.detections:
         raise CliError(f"{args.cloud}: its frames gave no fused cloud")
-    result = summary.detections[-1].result
+    result = summary.last_detection.result
     print(f"{len(result.mushrooms)} caps in {args.cloud} (fused {summary.units} units from {summary.frames} frames; "
           "the last unit's caps, frame: world, metres)")
-    _print_caps(result, summary.detections[-1].unit.cloud.T_world_bed[:3, 2])
+    _print_caps(result, summary.last_detection.unit.cloud.T_world_bed[:3, 2])
     print(f"detections: {out}" + (f"  rerun: {rrd}" if rrd else ""))
     return 0
 
@@ -440,7 +440,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     json_path = _writable_file(args.json, inputs=(_model_path(args.model),))
     model, meta = _load_model(args.model)
-    zoom = model.inference_zoom if args.zoom is None else args.zoom
+    zoom = args.zoom
+    read_at = f"zoom {zoom:g}" if zoom is not None else f"zoom {model.inference_zoom:g}, lower where sparser"
     report = {}
     for name in args.set:
         try:
@@ -451,11 +452,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
         results = evaluate_on_scenes(model, scenes, height=args.height, axis=args.axis, progress=not args.quiet,
                                      zoom=zoom)
         label = name + (f" at {1000 * args.spacing:g} mm spacing" if args.spacing else "") + \
-            f", read at zoom {zoom:g}" + \
+            f", read at {read_at}" + \
             (f" (first {len(scenes)} scenes)" if args.scenes else "")
         print(_eval_table(label, results))
         spacing = preset_config(name, args.visibility, args.spacing).voxel
-        report[name] = {method: {**result.as_dict(), "spacing": spacing, "zoom": zoom}
+        report[name] = {method: {**result.as_dict(), "spacing": spacing, "zoom": zoom or "adaptive"}
                         for method, result in results.items()}
     if json_path is not None:
         _replace_file(json_path, json.dumps(report, indent=1))
@@ -619,7 +620,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if result.frames_lost:
         print(f"warning: {session} was cut short (not finalised): replayed its {summary.frames} whole frames; "
               "what followed the last whole chunk is lost", file=sys.stderr)
-    caps = len(summary.detections[-1].result.mushrooms) if summary.detections else 0
+    caps = summary.detections[-1].caps if summary.detections else 0
     line = (f"replayed {summary.frames} frames into {summary.units} fused units ({caps} caps in the last) -> "
             f"{_wrote((out_dir / 'replay.mcap', out_dir / 'detections.json', rrd))}")
     if summary.stopped_by in STOP_EXIT:
@@ -750,6 +751,9 @@ def build_parser() -> argparse.ArgumentParser:
     detect.add_argument("--rrd", help="also write a Rerun recording of the result")
     detect.add_argument("--model", help="weights file (default: the shipped model)")
     detect.add_argument("--clustering", choices=["meanshift", "dbscan"], default="meanshift")
+    detect.add_argument("--zoom", type=_zoom, help="scale the network reads the cloud at (default: the one the "
+                        f"weights record, {SHIPPED_ZOOM} for the shipped model, lowered for clouds sparser than its "
+                        "training beds)")
     detect.add_argument("--bed-frame", action="store_true",
                         help="the cloud is already in the bed frame (z up, origin on the bed plane)")
     detect.set_defaults(run=cmd_detect)

@@ -65,7 +65,7 @@ def _run(folder: Path, model, seed: int, views: int, rrd: bool, spawn: bool, pro
     summary = run_chain(source, model, config, outputs)
     if not summary.detections:
         raise ValueError("the turn produced no fused cloud")
-    detection = summary.detections[-1]
+    detection = summary.last_detection
     fit = detection.result.fit
     score = evaluate([SceneCaps(fit.centers, fit.rotations, fit.scales, fit.scores)],
                      [SceneCaps(bed.centers, bed.rotations, bed.scales)])

@@ -10,6 +10,8 @@ import numpy as np
 import rerun as rr
 
 APPLICATION_ID = "mushroom-pose"
+WEB_PORT = 9090
+"""Where ``--serve`` serves the web viewer (the gRPC stream it reads has Rerun's own port)."""
 
 
 @contextmanager
@@ -35,8 +37,13 @@ def rerun_stream(rrd: Path | None = None, spawn: bool = False, serve: bool = Fal
     if spawn:
         rec.spawn(connect=rrd is None, default_blueprint=blueprint)
     if serve:
+        import sys
+        from urllib.parse import quote
+
         uri = rec.serve_grpc(default_blueprint=blueprint)
-        rr.serve_web_viewer(connect_to=uri, open_browser=False)
+        rr.serve_web_viewer(web_port=WEB_PORT, connect_to=uri, open_browser=False)
+        print(f"Rerun web viewer: http://localhost:{WEB_PORT}/?url={quote(uri, safe='')} (the native viewer: "
+              f"rerun {uri})", file=sys.stderr, flush=True)
     try:
         yield rec
     except BaseException:

@@ -94,6 +94,25 @@ class Detection:
     """From the unit's last frame leaving the source to its detections."""
 
 
+@dataclass(frozen=True)
+class DetectionRecord:
+    """What a run keeps of every unit it detected on: the document and the timings, not the clouds
+    and per-point arrays (a day of turns would not fit in memory)."""
+
+    unit: int
+    document: dict
+    caps: int
+    fusion_seconds: float
+    perception_seconds: float
+    latency_seconds: float
+
+    @staticmethod
+    def of(detection: Detection) -> "DetectionRecord":
+        return DetectionRecord(detection.unit.index, detection.document, len(detection.result.mushrooms),
+                               detection.unit.fusion_seconds, detection.perception_seconds,
+                               detection.latency_seconds)
+
+
 class Sink:
     """Consumes the chain's outputs; every method runs in the thread that made the output (capture
     in the source thread, fused in the fusion thread, detected in the perception thread)."""
@@ -120,7 +139,9 @@ class RunSummary:
     dropped_frames: int = 0
     units: int = 0
     dropped_units: int = 0
-    detections: list[Detection] = field(default_factory=list)
+    detections: list[DetectionRecord] = field(default_factory=list)
+    last_detection: Detection | None = None
+    """The newest unit's whole detection (its cloud and per-point results)."""
     last_unit: FusedUnit | None = None
     unit_kind: str | None = None
     stopped_by: str = "end"
@@ -269,7 +290,8 @@ class Runner:
                 now = time.perf_counter()
                 detection = Detection(unit, result, detections_document(result.mushrooms, "world"), now - started,
                                       now - unit.last_arrival)
-                self.summary.detections.append(detection)
+                self.summary.detections.append(DetectionRecord.of(detection))
+                self.summary.last_detection = detection
                 for sink in self.sinks:
                     sink.detected(detection)
                 for name, value in (("latency/perception_ms", 1000 * detection.perception_seconds),
