@@ -168,6 +168,8 @@ class VirtualCameraConfig:
     """Fixed T_world_camera poses (4x4); used when no turntable is given."""
     turntable: Turntable | None = None
     views: int = 18
+    turns: int | None = 1
+    """Turns of the turntable to render (None: it keeps turning, as a real one does)."""
     fps: float = 15.0
     """Frame rate of the timestamps (the frames themselves come as fast as they render)."""
     seed: int = 0
@@ -182,7 +184,12 @@ class VirtualCameraConfig:
         return np.asarray(self.poses[index], np.float64), None
 
     def __len__(self) -> int:
-        return self.views if self.turntable is not None else len(self.poses)
+        """Frames to render (for an endless turntable, those of one turn)."""
+        return self.views * (self.turns or 1) if self.turntable is not None else len(self.poses)
+
+    @property
+    def endless(self) -> bool:
+        return self.turntable is not None and self.turns is None
 
 
 NOISE_TABLE_FRAMES = 4
@@ -239,7 +246,7 @@ class VirtualSource(Source):
             self._scene = MeshScene(self._vertices, self._triangles, threads=0)
 
     def read(self) -> DepthFrame | None:
-        if self._index >= len(self):
+        if self._index >= len(self) and not self.config.endless:
             return None
         self.open()
         frame = render_view(self._scene, self.config, self._index)

@@ -256,6 +256,8 @@ class Fuser:
         if every is not None and every < 1:
             raise ValueError(f"every must be a positive number of frames, got {every}")
         self.config, self.rig, self.every = config, rig, every
+        self._step: float | None = None
+        """The smallest turntable step seen in the run (a dropped frame leaves a larger one)."""
         self._start()
 
     def _start(self) -> None:
@@ -269,8 +271,13 @@ class Fuser:
         return len(self._frames)
 
     def add(self, frame: DepthFrame) -> FusedCloud | None:
-        """Take one frame; the fused cloud when this frame completes a turn (or ``every`` frames)."""
+        """Take one frame; the fused cloud when this frame completes a turn (or ``every`` frames), or
+        when it lies a turn past the unit's first frame (then the unit before it; it starts the next)."""
         check_frames([frame])
+        if self.every is None and self._overruns(frame):
+            finished = self.flush()
+            self.add(frame)
+            return finished
         self._frames.append(frame)
         prior = self._prior()
         if self.config.integration.mode == "merge":
@@ -312,15 +319,36 @@ class Fuser:
         return _fuse(frames, views if len(views) == len(frames) > 1 else None, self.config, self.rig, pairs,
                      merged if len(merged.views) == len(frames) else None)
 
+    def _angles(self, frames: list[DepthFrame]) -> np.ndarray | None:
+        """The unwrapped turntable angles of the first sensor's frames (None without encoder angles)."""
+        sensor = self._frames[0].sensor_id if self._frames else frames[0].sensor_id
+        own = [f.turntable_angle for f in frames if f.sensor_id == sensor]
+        if not own or any(a is None for a in own):
+            return None
+        angles = np.unwrap(np.array(own, np.float64))
+        steps = np.abs(np.diff(angles))
+        if len(steps) and steps.max() > 0:
+            smallest = float(steps[steps > 0].min())
+            self._step = smallest if self._step is None else min(self._step, smallest)
+        return angles
+
+    def _overruns(self, frame: DepthFrame) -> bool:
+        """The frame lies a whole turn past the unit's first (the frames that closed the turn were
+        dropped): the unit ends before it."""
+        if not self._frames or frame.sensor_id != self._frames[0].sensor_id:
+            return False
+        angles = self._angles([*self._frames, frame])
+        step = self._step or 0.0
+        return angles is not None and abs(angles[-1] - angles[0]) >= 2 * np.pi - step / 4
+
     def _turn_done(self) -> bool:
         sensor = self._frames[0].sensor_id
         own = [f for f in self._frames if f.sensor_id == sensor]
         if len(own) < 2:
             return False
-        if all(f.turntable_angle is not None for f in own):
-            angles = np.unwrap(np.array([f.turntable_angle for f in own], np.float64))
-            steps = np.abs(np.diff(angles))
-            travelled, step = abs(angles[-1] - angles[0]), float(np.median(steps))
+        angles = self._angles(self._frames)
+        if angles is not None:
+            travelled, step = abs(angles[-1] - angles[0]), self._step or 0.0
         else:
             step = self.config.angle_step if self.config.angle_step is not None else (
                 self.rig.angle_step if self.rig is not None else None)
@@ -330,7 +358,7 @@ class Fuser:
         counts = {f.sensor_id: 0 for f in self._frames}
         for f in self._frames:
             counts[f.sensor_id] += 1
-        return travelled + step >= 2 * np.pi - step / 4 and len(set(counts.values())) == 1
+        return step > 0 and travelled + step >= 2 * np.pi - step / 4 and len(set(counts.values())) == 1
 
 
 def height_colors(height: np.ndarray, top: float = 0.06) -> np.ndarray:

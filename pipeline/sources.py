@@ -26,6 +26,8 @@ class VirtualBedRig:
     """Capture time of the first frame (live runs give the wall clock)."""
     mushrooms: tuple[int, int] | None = None
     """Caps on the bed, inclusive range (default: the generator's)."""
+    turns: int | None = 1
+    """Turns to render (None: it keeps turning)."""
 
 
 def virtual_bed_source(rig: VirtualBedRig = VirtualBedRig(), sensor_id: str = "virtual"):
@@ -36,7 +38,8 @@ def virtual_bed_source(rig: VirtualBedRig = VirtualBedRig(), sensor_id: str = "v
     bed = build_bed(np.random.default_rng(rig.seed),
                     SceneConfig(mushrooms=rig.mushrooms) if rig.mushrooms else SceneConfig())
     config = VirtualCameraConfig(turntable=circle_rig(np.zeros(3), rig.radius, rig.height), views=rig.views,
-                                 fps=rig.fps, seed=rig.seed, sensor_id=sensor_id, start_ns=rig.start_ns)
+                                 fps=rig.fps, seed=rig.seed, sensor_id=sensor_id, start_ns=rig.start_ns,
+                                 turns=rig.turns)
     return VirtualSource(bed.vertices, bed.triangles, config), bed
 
 
@@ -44,13 +47,13 @@ def make_source(camera: str, serial: str | None = None, seed: int = 0, views: in
                 playback: str | None = None, live: bool = False) -> Source:
     """A source for ``mushroom-pose record`` / ``live``: realsense (a camera, or a recorded device
     file through the same driver), oak or virtual. ``live`` paces the virtual camera in real time at
-    its frame rate with wall-clock timestamps, so it behaves as a real one."""
+    its frame rate with wall-clock timestamps and keeps turning, so it behaves as a real one."""
     if camera == "virtual":
         import time
 
         from capture.source import Paced
 
-        rig = VirtualBedRig(seed=seed, views=views, start_ns=time.time_ns() if live else 0)
+        rig = VirtualBedRig(seed=seed, views=views, start_ns=time.time_ns() if live else 0, turns=None if live else 1)
         source = virtual_bed_source(rig)[0]
         return Paced(source) if live else source
     if camera == "realsense":

@@ -96,3 +96,21 @@ def test_a_model_is_read_at_the_zoom_its_weights_record_and_older_weights_at_1_1
     del state["inference_zoom"]
     torch.save(state, tmp_path / "older.pt")
     assert UNRECORDED_ZOOM == 1.1 and load_weights(tmp_path / "older.pt")[0].inference_zoom == 1.1
+
+
+def test_a_sparser_cloud_is_read_at_a_lower_zoom(tmp_path):
+    """Beds at the training spacing are read at the model's zoom; the same bed at 5 mm spacing lower
+    (about 1.67 times the training beds' neighbour distance: zoom x 1.67^-0.56 = 0.75 x zoom)."""
+    from helpers import write_tiny_weights
+    from perception.detect import reading_zoom
+    from perception.synthetic.scene import SceneConfig, generate_scene
+    from perception.train import load_weights
+
+    model, _ = load_weights(write_tiny_weights(tmp_path / "tiny.pt"))
+    model.inference_zoom = 1.2
+    dense = generate_scene(7, SceneConfig(voxel=model.point_spacing, jitter=(1.0, 1.0)))
+    sparse = generate_scene(7, SceneConfig(voxel=0.005, jitter=(1.0, 1.0)))
+    assert reading_zoom(model, dense.points) == pytest.approx(1.2, abs=0.02)
+    assert 0.85 < reading_zoom(model, sparse.points) < 0.97
+    model.point_spacing = None
+    assert reading_zoom(model, sparse.points) == 1.2

@@ -371,3 +371,16 @@ def test_streaming_and_batch_fusion_give_the_same_surface(session, streamed):
           f"bed frames {rotation[0]:.4f} deg apart")
     assert np.median(distance) < 0.0008 and abs(len(stream) - len(batch)) < 0.02 * len(batch)
     assert rotation[0] < 0.05
+
+
+def test_a_turn_ends_where_it_should_when_frames_were_dropped():
+    """Frames 10-13 and 20 of three 12-view turns never reach fusion (a live camera ahead of it): the
+    first turn ends before frame 14, a turn past frame 0; the second is frames 14-25 without 20."""
+    source, _ = virtual_bed_source(VirtualBedRig(seed=0, views=12, turns=3))
+    with source:
+        frames = [f for k, f in enumerate(source) if k not in (10, 11, 12, 13, 20)]
+    fuser = Fuser(FusionConfig(refine=False))
+    units = [out.frame_ids for out in map(fuser.add, frames) if out is not None]
+    ids = [f"virtual@{f.timestamp_ns}" for f in frames]
+    assert units == [tuple(ids[:10]), tuple(ids[10:21])]
+    assert fuser.flush().frame_ids == tuple(ids[21:])

@@ -1,0 +1,71 @@
+"""The operating range of the shipped model: AP@25 / AP@50 (MeanShift) on synthetic beds by point
+spacing and by cap diameter, each bin its own beds (caps of that size only), so a bin is scored on the
+caps it holds. The model is trained on caps 16-72 mm across (scale 0.5-1.5 of a 40 mm cap, per axis
+0.8-1.2, beds scaled 1.05-1.35) at 3 mm spacing; the table says how far beyond that it holds.
+
+Usage: python bench/range.py [--beds 6] [--spacings 1 3 4 5] [--model PATH]
+"""
+
+import sys
+from pathlib import Path
+
+# the bench folder holds fusion.py and perception.py, which would shadow those packages
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
+
+import argparse  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from perception.cap import CAP_RADIUS_AT_UNIT_SCALE  # noqa: E402
+from perception.detect import DEFAULT_WEIGHTS, find_caps, predict  # noqa: E402
+from perception.evaluate import SceneCaps, evaluate  # noqa: E402
+from perception.synthetic.dataset import ground_truth_mask  # noqa: E402
+from perception.synthetic.scene import SceneConfig, generate_scene  # noqa: E402
+from perception.train import load_weights  # noqa: E402
+from pipeline.process import reuse_freed_memory  # noqa: E402
+
+DIAMETER_BINS_MM = ((15, 30), (30, 45), (45, 60), (60, 80), (80, 100), (100, 120))
+
+
+def score(model, scenes) -> tuple[float, float, int]:
+    preds, gts = [], []
+    for scene in scenes:
+        _, fit = find_caps(predict(model, scene.points), model.config.voxel)
+        preds.append(SceneCaps(fit.centers, fit.rotations, fit.scales, fit.scores))
+        visible = ground_truth_mask(scene)
+        gts.append(SceneCaps(scene.centers[visible], scene.rotations[visible], scene.scales[visible]))
+    result = evaluate(preds, gts)
+    return result.ap25, result.ap50, result.n_gt
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--beds", type=int, default=6, help="beds per cell of the table")
+    parser.add_argument("--spacings", type=float, nargs="+", default=[1, 3, 4, 5], help="millimetres")
+    parser.add_argument("--model", type=Path, default=DEFAULT_WEIGHTS)
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    reuse_freed_memory()
+    torch.set_num_threads(args.threads)
+    model, _ = load_weights(args.model)
+    print(f"model: {args.model}; {args.beds} beds per cell, 5-25 caps each, MeanShift; AP@25 / AP@50 (caps)\n")
+    print("| cap diameter | " + " | ".join(f"{s:g} mm spacing" for s in args.spacings) + " |")
+    print("|---|" + "---|" * len(args.spacings))
+    started = time.perf_counter()
+    for low, high in DIAMETER_BINS_MM:
+        # a cap's diameter is 2 x 20 mm x s x its axis factor (0.8-1.2): pick s so that it lies in the bin
+        scale = (low / 2000 / CAP_RADIUS_AT_UNIT_SCALE / 0.9, high / 2000 / CAP_RADIUS_AT_UNIT_SCALE / 1.1)
+        cells = []
+        for spacing in args.spacings:
+            config = SceneConfig(mushrooms=(5, 25), scale=scale, axis_factor=(0.9, 1.1), voxel=spacing / 1000)
+            scenes = [generate_scene(int(1000 * high + seed), config) for seed in range(args.beds)]
+            ap25, ap50, caps = score(model, scenes)
+            cells.append(f"{100 * ap25:.1f} / {100 * ap50:.1f} % ({caps})")
+        print(f"| {low}-{high} mm | " + " | ".join(cells) + " |", flush=True)
+    print(f"\n{time.perf_counter() - started:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
