@@ -37,16 +37,18 @@ def test_live_virtual_turn_is_recorded_fused_detected_and_logged(tmp_path):
     assert "one fused cloud per turn" in result.stdout
     with McapSource(tmp_path / "s.mcap") as session:
         frames = list(session)
-    assert len(frames) == 6
+    # the turntable keeps turning until the first turn is fused: every frame until then is recorded
+    assert len(frames) >= 6
     # live frames carry wall-clock time, 1/15 s apart
     assert abs(frames[0].timestamp_ns / 1e9 - os.path.getmtime(tmp_path / "s.mcap")) < 600
     assert np.allclose(np.diff([f.timestamp_ns for f in frames]), 1e9 / 15, atol=1)
     units = read_fused_units(tmp_path / "s.mcap")
     documents = read_documents(tmp_path / "s.mcap")
-    assert len(units) == len(documents) == 1 and len(units[0].frame_ids) == 6
-    assert documents[0][1]["mushrooms"] and documents[0][0] == frames[-1].timestamp_ns
+    assert len(units) == len(documents) == 1
+    assert units[0].frame_ids == tuple(f"virtual@{f.timestamp_ns}" for f in frames[:6])
+    assert documents[0][1]["mushrooms"] and documents[0][0] == frames[5].timestamp_ns
     rows = rrd_entity_rows(tmp_path / "s.rrd")
-    assert rows["/world/camera/virtual/depth"] == 6 and rows["/stats/latency/fusion_per_frame_ms"] == 6
+    assert rows["/world/camera/virtual/depth"] == len(frames) and rows["/stats/latency/fusion_per_frame_ms"] >= 6
 
 
 def test_sigterm_during_live_finalises_every_output(tmp_path):
