@@ -44,22 +44,26 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--beds", type=int, default=6, help="beds per cell of the table")
     parser.add_argument("--spacings", type=float, nargs="+", default=[1, 3, 4, 5], help="millimetres")
+    parser.add_argument("--diameters", type=int, nargs="+", help="only the bins starting at these diameters (mm)")
     parser.add_argument("--model", type=Path, default=DEFAULT_WEIGHTS)
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
     reuse_freed_memory()
     torch.set_num_threads(args.threads)
     model, _ = load_weights(args.model)
-    print(f"model: {args.model}; {args.beds} beds per cell, 5-25 caps each, MeanShift; AP@25 / AP@50 (caps)\n")
+    print(f"model: {args.model}; {args.beds} beds per cell, 5-25 round caps each, MeanShift; AP@25 / AP@50 "
+          "(caps)\n")
     print("| cap diameter | " + " | ".join(f"{s:g} mm spacing" for s in args.spacings) + " |")
     print("|---|" + "---|" * len(args.spacings))
     started = time.perf_counter()
     for low, high in DIAMETER_BINS_MM:
-        # a cap's diameter is 2 x 20 mm x s x its axis factor (0.8-1.2): pick s so that it lies in the bin
-        scale = (low / 2000 / CAP_RADIUS_AT_UNIT_SCALE / 0.9, high / 2000 / CAP_RADIUS_AT_UNIT_SCALE / 1.1)
+        if args.diameters and low not in args.diameters:
+            continue
+        # a cap's diameter is 2 x 20 mm x s (round caps: no per-axis factor), so s spans the bin
+        scale = (low / 2000 / CAP_RADIUS_AT_UNIT_SCALE, high / 2000 / CAP_RADIUS_AT_UNIT_SCALE)
         cells = []
         for spacing in args.spacings:
-            config = SceneConfig(mushrooms=(5, 25), scale=scale, axis_factor=(0.9, 1.1), voxel=spacing / 1000)
+            config = SceneConfig(mushrooms=(5, 25), scale=scale, axis_factor=(1.0, 1.0), voxel=spacing / 1000)
             scenes = [generate_scene(int(1000 * high + seed), config) for seed in range(args.beds)]
             ap25, ap50, caps = score(model, scenes)
             cells.append(f"{100 * ap25:.1f} / {100 * ap50:.1f} % ({caps})")

@@ -64,6 +64,11 @@ def at_training_density(model: MushroomNet, points: np.ndarray) -> np.ndarray:
     return np.arange(len(points))
 
 
+OPERATING_SPACING = 0.0045
+"""Metres: beyond this point spacing caps under 30 mm across are found less reliably (bench/range.py:
+AP@50 95 % at 3 mm, 72 % at 4 mm, 58 % at 5 mm)."""
+OPERATING_DIAMETER = 0.080
+"""Metres: caps wider than this are found, but their boxes less reliably (bench/range.py)."""
 NEIGHBOUR_PER_SPACING = 0.645
 """Median distance from a point of a synthetic bed to its nearest neighbour, over the bed's point
 spacing (1.94 mm on val50's 3 mm beds, 3.24 mm on the same beds at 5 mm)."""
@@ -73,20 +78,27 @@ spacing (a ratio of 1.67) are read at 0.9 instead of 1.2, where their AP@50 was 
 54.6 % at 1.2, 85.7 % at 1.0, 89.4 % at 0.9, 83.3 % at 0.8)."""
 
 
-def reading_zoom(model: MushroomNet, points: np.ndarray, samples: int = 5000) -> float:
+def point_spacing(points: np.ndarray, samples: int = 5000) -> float:
+    """The spacing (metres) of the synthetic beds whose points lie as far apart as these: their median
+    nearest-neighbour distance over ``NEIGHBOUR_PER_SPACING``; nan for fewer than 100 points."""
+    if len(points) < 100:
+        return float("nan")
+    from scipy.spatial import cKDTree
+
+    queries = points[np.random.default_rng(0).choice(len(points), min(samples, len(points)), replace=False)]
+    return float(np.median(cKDTree(points).query(queries, k=2)[0][:, 1])) / NEIGHBOUR_PER_SPACING
+
+
+def reading_zoom(model: MushroomNet, points: np.ndarray) -> float:
     """The zoom a cloud (at most training density, ``at_training_density``) is read at: the model's,
     lowered for a cloud sparser than the model's training beds. The network learnt caps from beds with
     a point per 3 mm; on sparser ones a cap's voxels are a gappy shell, and reading the cloud smaller
     closes it up (caps then look smaller, which costs less)."""
     zoom = model.inference_zoom
-    if not model.point_spacing or len(points) < 100:
+    spacing = point_spacing(points)
+    if not model.point_spacing or not np.isfinite(spacing):
         return zoom
-    from scipy.spatial import cKDTree
-
-    queries = points[np.random.default_rng(0).choice(len(points), min(samples, len(points)), replace=False)]
-    spacing = float(np.median(cKDTree(points).query(queries, k=2)[0][:, 1]))
-    ratio = spacing / (NEIGHBOUR_PER_SPACING * model.point_spacing)
-    return zoom * min(1.0, ratio ** -SPARSE_ZOOM_EXPONENT)
+    return zoom * min(1.0, (spacing / model.point_spacing) ** -SPARSE_ZOOM_EXPONENT)
 
 
 @torch.no_grad()

@@ -341,6 +341,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     result = transform_result(result, T_input_bed, frame)
     print(f"{len(result.mushrooms)} caps in {args.cloud} ({len(points)} points, frame: {frame}, metres)")
     _print_caps(result, T_input_bed[:3, 2])
+    _warn_outside_range(model, bed_points, result, args.cloud)
     payload = {**detections_document(result.mushrooms, frame), "T_input_bed": T_input_bed.tolist()}
     _replace_file(out, json.dumps(payload, indent=1))
     with rerun_stream(rrd) as rec:
@@ -393,6 +394,24 @@ def _detect_session(args: argparse.Namespace) -> int:
     _print_caps(result, summary.last_detection.unit.cloud.T_world_bed[:3, 2])
     print(f"detections: {out}" + (f"  rerun: {rrd}" if rrd else ""))
     return 0
+
+
+def _warn_outside_range(model, bed_points, result, cloud: str) -> None:
+    """Say so on stderr when a cloud or its caps lie outside the range the model holds to."""
+    from perception.detect import OPERATING_DIAMETER, OPERATING_SPACING, at_training_density, point_spacing
+
+    spacing = point_spacing(bed_points[at_training_density(model, bed_points)])
+    if spacing > OPERATING_SPACING:
+        print(f"warning: the points of {cloud} lie as far apart as a bed sampled every {1000 * spacing:.1f} mm; the "
+              f"model holds to {1000 * OPERATING_SPACING:g} mm: caps under 30 mm across are found less reliably",
+              file=sys.stderr)
+    wide = sum(2 * m.radius > OPERATING_DIAMETER for m in result.mushrooms)
+    if wide:
+        print(f"warning: {wide} caps are over {1000 * OPERATING_DIAMETER:.0f} mm across, beyond the sizes the model "
+              "holds to: their size and axis are less reliable", file=sys.stderr)
+    if not result.mushrooms and len(bed_points) > 1000:
+        print(f"warning: no caps in {len(bed_points)} points: if the bed plainly has caps, check the cloud's units "
+              "and that it shows a bed seen from above", file=sys.stderr)
 
 
 def _print_caps(result, up) -> None:
@@ -456,7 +475,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
             (f" (first {len(scenes)} scenes)" if args.scenes else "")
         print(_eval_table(label, results))
         spacing = preset_config(name, args.visibility, args.spacing).voxel
-        report[name] = {method: {**result.as_dict(), "spacing": spacing, "zoom": zoom or "adaptive"}
+        report[name] = {method: {**result.as_dict(), "spacing": spacing, "zoom": zoom or model.inference_zoom,
+                                 "zoom_lowered_where_sparser": zoom is None}
                         for method, result in results.items()}
     if json_path is not None:
         _replace_file(json_path, json.dumps(report, indent=1))
