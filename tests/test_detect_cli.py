@@ -284,3 +284,16 @@ def test_eval_prints_the_table_and_writes_json(tmp_path, weights, monkeypatch):
     assert json.loads((tmp_path / "z.json").read_text())["val50"]["dbscan"]["zoom"] == 1.3
     refused = run("eval", "--zoom", "3", "--model", weights)
     assert refused.returncode == 2 and "at most 2.0" in refused.stderr and "Traceback" not in refused.stderr
+
+
+def test_detect_warns_outside_the_operating_range(tmp_path, weights):
+    """A bed sampled every 5 mm is sparser than the model holds to; the same bed at 3 mm is not. The
+    tiny model finds no caps on either, which detect also says."""
+    for spacing in (0.003, 0.005):
+        scene = generate_scene(11, SceneConfig(voxel=spacing, jitter=(1.0, 1.0)))
+        cloud = write_ply(tmp_path / f"bed{spacing}.ply", scene.points)
+        result = run("detect", cloud, "--out", tmp_path / "d.json", "--model", weights, "--bed-frame")
+        assert result.returncode == 0, result.stderr
+        sparse = [line for line in result.stderr.splitlines() if "lie as far apart" in line]
+        assert len(sparse) == (spacing == 0.005)
+        assert "warning: no caps" in result.stderr
