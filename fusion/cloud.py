@@ -316,8 +316,10 @@ class Fuser:
             return None
         frames, views, pairs, merged = self._frames, self._views, self._pairs, self._merge
         self._start()
+        # a unit of one frame (a turn cut short) keeps all its pixels, as a single view does
         return _fuse(frames, views if len(views) == len(frames) > 1 else None, self.config, self.rig, pairs,
-                     merged if len(merged.views) == len(frames) else None)
+                     merged if len(merged.views) == len(frames) and (len(frames) > 1 or not merged.multi_view)
+                     else None)
 
     def _angles(self, frames: list[DepthFrame]) -> np.ndarray | None:
         """The unwrapped turntable angles of the first sensor's frames (None without encoder angles)."""

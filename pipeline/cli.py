@@ -600,7 +600,8 @@ def cmd_live(args: argparse.Namespace) -> int:
             raise CliError(f"{args.camera} camera: {error}" + (f"; kept {kept}" if kept else "")) from None
     outputs_line = _wrote((record, rrd, detections)) or "nothing (add --record, --rrd or --detections)"
     line = (f"{summary.frames} frames, {summary.units} fused units, {len(summary.detections)} detected, "
-            f"{summary.dropped_frames} frames and {summary.dropped_units} units dropped; wrote {outputs_line}")
+            f"{summary.dropped_frames} frames and {summary.dropped_units} units dropped, {summary.failed_units} "
+            f"units skipped; wrote {outputs_line}")
     if summary.stopped_by in STOP_EXIT:
         print(f"stopped by {summary.stopped_by}: {line}", file=sys.stderr)
         return STOP_EXIT[summary.stopped_by]

@@ -129,6 +129,9 @@ class Sink:
     def stats(self, name: str, value: float, frame: int, capture_ns: int) -> None:
         """A counter or latency at a point of the run (for plots over time)."""
 
+    def failed(self, message: str, frame: int, capture_ns: int) -> None:
+        """A unit fusion could not make, skipped (the run goes on)."""
+
     def close(self, ok: bool) -> None:
         """Finalise outputs; ``ok`` is False when the run ended by an error."""
 
@@ -139,6 +142,9 @@ class RunSummary:
     dropped_frames: int = 0
     units: int = 0
     dropped_units: int = 0
+    failed_units: int = 0
+    """Units fusion could not make (views that do not overlap, a frame without depth), skipped."""
+    last_failure: str | None = None
     detections: list[DetectionRecord] = field(default_factory=list)
     last_detection: Detection | None = None
     """The newest unit's whole detection (its cloud and per-point results)."""
@@ -361,7 +367,12 @@ class Runner:
                 if self.on_start is not None:
                     self.on_start(builder.describe())
             started = time.perf_counter()
-            cloud = builder.add(frame)
+            try:
+                cloud = builder.add(frame)
+            except ValueError as error:  # one unusable unit (no overlap, a frame without depth): the run goes on
+                self._fail(str(error), index, frame)
+                unit_frames = 0
+                continue
             unit_frames += 1
             self._stat_frame("latency/fusion_per_frame_ms", 1000 * (time.perf_counter() - started), index, frame)
             self._stat_frame("counts/dropped_frames", self.summary.dropped_frames, index, frame)
@@ -383,6 +394,13 @@ class Runner:
             cloud = builder.flush()
             if cloud is not None:
                 self._emit(cloud, builder.kind, unit_frames, index, frame, arrival, time.perf_counter() - started)
+
+    def _fail(self, message: str, index: int, frame: DepthFrame) -> None:
+        self.summary.failed_units += 1
+        self.summary.last_failure = message
+        for sink in self.sinks:
+            sink.failed(message, index, frame.timestamp_ns)
+        self._stat_frame("counts/failed_units", self.summary.failed_units, index, frame)
 
     def _stat_frame(self, name: str, value: float, index: int, frame: DepthFrame) -> None:
         for sink in self.sinks:

@@ -191,10 +191,14 @@ class JsonSink(Sink):
 
 
 class ConsoleSink(Sink):
-    """One line per fused unit on stderr: frames, caps, and the time each stage took."""
+    """One line per fused unit on stderr: frames, caps, and the time each stage took; one per unit
+    fusion could not make, even when quiet."""
 
     def __init__(self, quiet: bool = False):
         self.quiet = quiet
+
+    def failed(self, message: str, frame: int, capture_ns: int) -> None:
+        print(f"warning: the unit ending at frame {frame} is skipped: {message}", file=sys.stderr, flush=True)
 
     def detected(self, detection: Detection) -> None:
         if self.quiet:

@@ -162,3 +162,17 @@ def test_window_fuses_the_last_frames_after_every_frame(tmp_path):
     assert "the last 2 frames" in result.stdout
     units = read_fused_units(tmp_path / "replay.mcap")
     assert [len(u.frame_ids) for u in units] == [1, 2]
+
+
+def test_a_unit_fusion_cannot_make_is_skipped_and_the_run_goes_on(model, monkeypatch):
+    calls = []
+
+    def add(self, frame):
+        calls.append(frame.timestamp_ns)
+        if len(calls) == 2:
+            raise ValueError("no two of the 2 views overlap")
+        return None
+
+    monkeypatch.setattr(UnitBuilder, "add", add)
+    summary = Runner(ListSource(5), model, RunConfig(live=True), []).run()
+    assert len(calls) == 5 and summary.failed_units == 1 and "overlap" in summary.last_failure
