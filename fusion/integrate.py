@@ -25,7 +25,7 @@ class IntegrationConfig:
     """"merge" (smooth each depth image, back-project, voxel-merge) or "tsdf" (a TSDF's zero surface).
     Merge is the default because the perception model reads its clouds far better: with the shipped
     model on 5 virtual beds, AP@25 0.88 for 4 merged views against 0.64 for the same views through
-    the TSDF (bench/views.py has the full table)."""
+    the TSDF."""
     voxel: float = 0.002
     truncation_voxels: float = 4.0
     """TSDF truncation distance in voxels; must exceed the depth noise (about 1.3 mm at 0.45 m)."""
