@@ -10,8 +10,6 @@ from pathlib import Path
 from pipeline.check import CheckReport, Tolerances, compare
 from pipeline.runner import RunSummary
 
-OUTPUT_NAMES = ("replay.mcap", "detections.json")
-
 
 class ReplayError(ValueError):
     """A session that cannot be replayed (one line)."""

@@ -25,8 +25,6 @@ from capture.source import Source
 from fusion.cloud import FusedCloud, Fuser, FusionConfig, fuse
 from fusion.turntable import Rig
 
-UNIT_KINDS = ("turn", "set", "frame", "window")
-
 
 @dataclass(frozen=True)
 class FusionStage:
