@@ -760,7 +760,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.set_defaults(run=cmd_train)
 
     average = sub.add_parser("average", help="average the weights of models fine-tuned from one start "
-                             "(a model soup; the model shipped in sessions 24-25 was one)")
+                             "(a model soup)")
     average.add_argument("weights", nargs="+", help="two or more model.pt files that share a start (--init)")
     average.add_argument("--out", required=True, help="the weights file (.pt) to write")
     average.set_defaults(run=cmd_average)
@@ -793,7 +793,8 @@ def build_parser() -> argparse.ArgumentParser:
                           help=f"the same beds at this point spacing in metres (default {SPACING_HELP}; "
                                "0.0051 gives the sets used before session 15)")
     evaluate.add_argument("--zoom", type=_zoom, help="scale the network reads clouds at (default: the one the weights record, "
-                          f"{SHIPPED_ZOOM} for the shipped model, 1.1 for weights saved before session 16)")
+                          f"{SHIPPED_ZOOM} for the shipped model, 1.1 for weights that record none; lowered for beds "
+                          "sparser than the training beds)")
     evaluate.add_argument("--scenes", type=_positive(int), help="only the first N scenes of each set")
     evaluate.add_argument("--quiet", action="store_true")
     evaluate.set_defaults(run=cmd_eval)
