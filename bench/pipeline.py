@@ -62,6 +62,7 @@ def record_session(path: Path, turns: int) -> list:
 def replay(session: Path, model, realtime: bool, out: Path):
     from pipeline.replay import ReplayOptions, run_replay
 
+    out.mkdir()
     started = time.perf_counter()
     result = run_replay(session, model, out, None, ReplayOptions(realtime=realtime), quiet=True)
     return result.summary, time.perf_counter() - started
