@@ -47,8 +47,8 @@ def turn_frames(seed: int, start_ns: int):
         return list(source)
 
 
-def record_session(path: Path, turns: int) -> list:
-    """``turns`` consecutive turns (beds 100, 101, ...) in one MCAP; returns the frames."""
+def record_session(path: Path, turns: int) -> None:
+    """``turns`` consecutive turns (beds 100, 101, ...) in one MCAP."""
     frames, start = [], 0
     for turn in range(turns):
         frames += turn_frames(100 + turn, start)
@@ -56,7 +56,6 @@ def record_session(path: Path, turns: int) -> list:
     with McapRecorder(path) as recorder:
         for frame in frames:
             recorder.write(frame)
-    return frames
 
 
 def replay(session: Path, model, realtime: bool, out: Path):

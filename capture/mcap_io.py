@@ -205,15 +205,9 @@ class McapRecorder:
             log_time=t)
         pose = None if frame.T_world_camera is None else np.asarray(frame.T_world_camera, np.float64)
         if pose is not None:
-            from scipy.spatial.transform import Rotation
-
             if not np.isfinite(pose).all():
                 raise ValueError(f"sensor {sensor!r}: the camera pose at {t} ns is not finite")
-            x, y, z, w = Rotation.from_matrix(pose[:3, :3]).as_quat()
-            self._channel("/tf", FrameTransformsChannel).log(FrameTransforms(transforms=[FrameTransform(
-                timestamp=stamp, parent_frame_id="world", child_frame_id=frame_id,
-                translation=Vector3(x=pose[0, 3], y=pose[1, 3], z=pose[2, 3]),
-                rotation=Quaternion(x=x, y=y, z=z, w=w))]), log_time=t)
+            self._log_transform("world", frame_id, pose, t)
         meta = {"timestamp_ns": t, "depth_scale": float(frame.depth_scale),
                 "turntable_angle": None if frame.turntable_angle is None else float(frame.turntable_angle),
                 "T_world_camera": None if pose is None else pose.ravel().tolist(),
@@ -258,6 +252,10 @@ class McapRecorder:
 
     def write_transform(self, parent: str, child: str, T_parent_child: np.ndarray, log_time_ns: int) -> None:
         """Log ``T_parent_child`` on /tf (for viewers; the pose is also kept exact where replay needs it)."""
+        self._log_transform(parent, child, T_parent_child, log_time_ns)
+        self._messages += 1
+
+    def _log_transform(self, parent: str, child: str, T_parent_child: np.ndarray, log_time_ns: int) -> None:
         from scipy.spatial.transform import Rotation
 
         T = np.asarray(T_parent_child, np.float64)
@@ -266,7 +264,6 @@ class McapRecorder:
             timestamp=_timestamp(int(log_time_ns)), parent_frame_id=parent, child_frame_id=child,
             translation=Vector3(x=T[0, 3], y=T[1, 3], z=T[2, 3]), rotation=Quaternion(x=x, y=y, z=z, w=w))]),
             log_time=int(log_time_ns))
-        self._messages += 1
 
     def write_scene_update(self, topic: str, update: SceneUpdate, log_time_ns: int) -> None:
         """Log a foxglove.SceneUpdate (shapes a viewer draws in 3D)."""

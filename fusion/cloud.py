@@ -78,6 +78,11 @@ class FusedCloud:
         return FusedCloud(bed, normals, None, T, tuple(frame_ids), np.zeros((0, 4, 4)))
 
     @property
+    def display_colors(self) -> np.ndarray:
+        """(N, 3) uint8: the cloud's own colours, or its height above the bed on a colour ramp."""
+        return self.colors if self.colors is not None else height_colors(self.points[:, 2])
+
+    @property
     def world_points(self) -> np.ndarray:
         return (self.points @ self.T_world_bed[:3, :3].T.astype(np.float32)
                 + self.T_world_bed[:3, 3].astype(np.float32))
@@ -378,5 +383,4 @@ def log_rerun(rec, fused: FusedCloud, entity: str = "world/fusion/cloud", radius
     height above the bed when it has none."""
     import rerun as rr
 
-    colors = fused.colors if fused.colors is not None else height_colors(fused.points[:, 2])
-    rec.log(entity, rr.Points3D(fused.world_points, colors=colors, radii=radius))
+    rec.log(entity, rr.Points3D(fused.world_points, colors=fused.display_colors, radii=radius))

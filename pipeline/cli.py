@@ -62,12 +62,11 @@ def _writable_file(path: str | None, inputs: tuple[str | None, ...] = (), suffix
 def _replace_file(path: Path, text: str) -> None:
     """Write through a temporary file renamed over ``path``: a failed write leaves an earlier file
     whole and no temporary file behind."""
-    tmp = path.with_name(path.name + ".partial")
+    from pipeline.sinks import write_atomically
+
     try:
-        tmp.write_text(text)
-        tmp.replace(path)
+        write_atomically(path, text)
     except OSError as error:
-        tmp.unlink(missing_ok=True)
         raise CliError(f"cannot write {path}: {error.strerror or error}") from None
 
 

@@ -17,14 +17,6 @@ CAP_COLOR = (255, 40, 200)
 """Caps stand out in magenta against soil, white caps and the height colouring of the cloud."""
 
 
-def cloud_colors(unit: FusedUnit) -> np.ndarray:
-    """The fused cloud's own colours, or its height above the bed on a colour ramp."""
-    from fusion.cloud import height_colors
-
-    cloud = unit.cloud
-    return cloud.colors if cloud.colors is not None else height_colors(cloud.points[:, 2])
-
-
 def write_atomically(path: Path, text: str) -> None:
     """``path`` holds ``text`` whole or keeps what it held: a temporary name, then renamed."""
     tmp = path.with_name(path.name + ".partial")
@@ -60,8 +52,7 @@ class RerunSink(Sink):
         self._views[frame.sensor_id] = frame
 
     def fused(self, unit: FusedUnit) -> None:
-        import rerun as rr
-
+        from fusion.cloud import log_rerun as log_fused
         from pipeline.rerun_sink import default_blueprint
 
         if not self._framed:
@@ -69,8 +60,7 @@ class RerunSink(Sink):
             extent = float(np.ptp(unit.cloud.points[:, :2], axis=0).max()) if len(unit.cloud) else 0.5
             self.rec.send_blueprint(default_blueprint(sorted(self._views), unit.cloud.T_world_bed, extent))
         self._time(unit.last_frame_index, unit.last_frame_ns)
-        self.rec.log("world/fusion/cloud", rr.Points3D(unit.cloud.world_points, colors=cloud_colors(unit),
-                                                       radii=0.0008))
+        log_fused(self.rec, unit.cloud)
 
     def detected(self, detection: Detection) -> None:
         from perception.detect import log_rerun
@@ -112,7 +102,7 @@ class McapSink(Sink):
         with self._lock:
             self.recorder.write_transform("world", "bed", unit.cloud.T_world_bed, t)
             self.recorder.write_point_cloud(FUSED_CLOUD_TOPIC, unit.cloud.world_points, t, "world",
-                                            colors=cloud_colors(unit))
+                                            colors=unit.cloud.display_colors)
             self.recorder.write_json(UNIT_TOPIC, {"index": unit.index, "kind": unit.kind,
                                                   "T_world_bed": unit.cloud.T_world_bed.ravel().tolist(),
                                                   "frame_ids": list(unit.cloud.frame_ids)}, t)
