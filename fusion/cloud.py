@@ -155,6 +155,15 @@ def bed_frame(points: np.ndarray, poses: np.ndarray, distance: float = 0.008) ->
     return T
 
 
+def _box_corners(points: np.ndarray) -> np.ndarray:
+    """The 8 corners of the axis-aligned box around ``points`` (none for no points)."""
+    if not len(points):
+        return np.zeros((0, 3), np.float32)
+    columns = np.ascontiguousarray(points.T)  # a reduction along a short contiguous axis is ~20x slower
+    lo, hi = columns.min(1), columns.max(1)
+    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])], np.float32)
+
+
 class StreamingMerge:
     """Merge mode's integration as frames arrive: each frame is back-projected and its voxel sums
     taken at its prior pose; when the unit ends, only frames that refinement moved by more than
@@ -167,6 +176,7 @@ class StreamingMerge:
         self.config, self.multi_view = config, multi_view
         self.views: list[CameraPoints] = []
         self._poses: list[np.ndarray | None] = []
+        self._corners: list[np.ndarray] = []
         self._merge: VoxelMerge | None = None
 
     def add(self, frame: DepthFrame, prior: np.ndarray | None) -> None:
@@ -179,12 +189,12 @@ class StreamingMerge:
             prior = None
         self.views.append(view)
         self._poses.append(prior)
+        self._corners.append(_box_corners(view.points))
 
-    def _moved(self, view: CameraPoints, before: np.ndarray, after: np.ndarray) -> bool:
-        if not len(view.points):
+    def _moved(self, k: int, before: np.ndarray, after: np.ndarray) -> bool:
+        corners = self._corners[k]
+        if not len(corners):
             return False
-        lo, hi = view.points.min(0), view.points.max(0)
-        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
         shift = np.linalg.norm(transform_points(before, corners) - transform_points(after, corners), axis=1).max()
         return shift > self.MOVED_FRACTION * self.config.voxel
 
@@ -192,7 +202,7 @@ class StreamingMerge:
         if any((v.colors is not None) != self._merge.with_color for v in self.views):
             return merge_back_projected(self.views, poses, self.config)
         for k, (view, pose) in enumerate(zip(self.views, poses)):
-            if self._poses[k] is None or self._moved(view, self._poses[k], pose):
+            if self._poses[k] is None or self._moved(k, self._poses[k], pose):
                 self._merge.add(k, view, pose)
         return self._merge.surface()
 
@@ -254,7 +264,7 @@ class Fuser:
     """Fusion as frames arrive: a cloud is fused when a turn is complete (angles from the encoder or
     the fixed step; every sensor has as many frames as the first) or, with ``every``, after that many
     frames; ``flush`` fuses what is left. What needs no later frame is done on arrival, so little is
-    left when the unit ends: each frame's ICP pyramid, its registration with the frames just before
+    left when the unit ends: each frame's ICP pyramid, its registration with the frame just before
     it under the prior (when the prior is known per frame), and merge mode's back-projection."""
 
     def __init__(self, config: FusionConfig = FusionConfig(), rig: Rig | None = None, every: int | None = None):
@@ -305,15 +315,15 @@ class Fuser:
             return None  # _fuse reports it with the whole unit
 
     def _register_on_arrival(self, prior: np.ndarray) -> None:
-        """ICP of the newest frame onto the ``neighbours`` frames before it, from the prior: the
-        consecutive pairs refinement will ask for (a turn's loop-closing pairs are left to the end)."""
+        """ICP of the newest frame onto the frame before it, from the prior: the consecutive pair is
+        one refinement always asks for (``candidate_pairs``); pairs that depend on frames still to
+        come (a turn's loop-closing pair, nearest views of other cameras) are left to the end."""
         j = len(self._frames) - 1
         if j == 0 or not self.config.refine or self.every == 1:
             return
-        registration = self.config.registration
-        for i in range(max(0, j - registration.neighbours), j):
-            self._pairs[(i, j)] = register_pair(self._views[j], self._views[i], np.linalg.inv(prior[i]) @ prior[j],
-                                                registration, (j, i))
+        self._pairs[(j - 1, j)] = register_pair(self._views[j], self._views[j - 1],
+                                                np.linalg.inv(prior[j - 1]) @ prior[j], self.config.registration,
+                                                (j, j - 1))
 
     def flush(self) -> FusedCloud | None:
         """Fuse the pending frames (None when there are none) and start afresh."""

@@ -11,6 +11,7 @@ chain keeps up with, so nothing is dropped.
 
 from __future__ import annotations
 
+import os
 import queue
 import threading
 import time
@@ -59,6 +60,9 @@ class RunConfig:
     """Stop after this many fused units (``--turns``)."""
     duration_s: float | None = None
     """Stop capturing after this many seconds of wall clock."""
+    perception_threads: int | None = None
+    """Torch threads while fusion runs beside perception; None: every core but one, which fusion
+    keeps (both stages at full width on the same cores slow each other down more than they gain)."""
 
 
 @dataclass(frozen=True)
@@ -316,9 +320,14 @@ class Runner:
     def run(self) -> RunSummary:
         """Run until the source ends, a limit is reached, a stop is requested or a stage fails; sinks are
         closed in every case. Errors of any thread are raised here."""
+        import torch
+
         capture = threading.Thread(target=self._capture, name="capture", daemon=True)
         perceive = threading.Thread(target=self._perceive, name="perception", daemon=True)
         ok = False
+        threads = torch.get_num_threads()
+        if self.config.fusion.recorded is None:
+            torch.set_num_threads(self.config.perception_threads or max(1, min(threads, (os.cpu_count() or 2) - 1)))
         try:
             self.source.open()
             capture.start()
@@ -332,6 +341,7 @@ class Runner:
                 self._unit_ready.notify_all()
             capture.join(timeout=10)
             perceive.join()
+            torch.set_num_threads(threads)
             try:
                 self.source.close()
             finally:
