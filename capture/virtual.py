@@ -59,7 +59,7 @@ class MeshScene:
     def render(self, intrinsics: CameraIntrinsics, T_world_camera: np.ndarray) -> Render:
         # Open3D builds the rays in C++. A numpy matmul here (OpenBLAS, both cores) leaves its threads
         # spinning for tens of milliseconds after it returns, and the ray caster then shares a core with
-        # them: cast_rays took 70 ms after such a matmul against 40 ms without. Open3D aims its rays at
+        # them: cast_rays takes 70 ms after such a matmul against 40 ms without. Open3D aims its rays at
         # pixel centres, u + 0.5; ours (CameraIntrinsics) are at u, hence the half-pixel shift.
         shifted = np.array([[intrinsics.fx, 0.0, intrinsics.cx + 0.5], [0.0, intrinsics.fy, intrinsics.cy + 0.5],
                             [0.0, 0.0, 1.0]])
@@ -200,8 +200,8 @@ def _gaussian_table(seed: int, pixels: int) -> np.ndarray:
     """``NOISE_TABLE_FRAMES`` frames' worth of standard normal samples, drawn once per seed and size.
 
     A frame's range noise is a window of it at a random offset: within a frame the samples are
-    independent, as before. Drawing 407 k fresh ones took 7-8 ms a frame at 848x480, a ninth of the
-    time 15 fps allows. Two frames share values only at pixels shifted by the difference of their
+    independent, as with fresh draws. Drawing 407 k fresh ones takes 7-8 ms a frame at 848x480, a ninth
+    of the time 15 fps allows. Two frames share values only at pixels shifted by the difference of their
     offsets; a surface point seen in both lands on pixels unrelated to that shift.
     """
     table = np.random.default_rng([seed, 1 << 32]).standard_normal(NOISE_TABLE_FRAMES * pixels, dtype=np.float32)

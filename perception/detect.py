@@ -75,7 +75,7 @@ NEIGHBOUR_PER_SPACING = 0.645
 spacing (1.94 mm on val50's 3 mm beds, 3.24 mm on the same beds at 5 mm)."""
 SPARSE_ZOOM_EXPONENT = 0.56
 """How much lower a sparse cloud is read: zoom x (spacing ratio)^-0.56, so val50's beds made at 5 mm
-spacing (a ratio of 1.67) are read at 0.9 instead of 1.2, where their AP@50 was highest (20 beds:
+spacing (a ratio of 1.67) are read at 0.9 instead of 1.2, where their AP@50 is highest (20 beds:
 54.6 % at 1.2, 85.7 % at 1.0, 89.4 % at 0.9, 83.3 % at 0.8)."""
 
 
@@ -109,10 +109,10 @@ def predict(model: MushroomNet, points: np.ndarray, thin: bool = True,
 
     The network was trained on clouds with one point per ``model.point_spacing`` (the synthetic
     scenes' voxel; None: unknown, never thin). A much denser cloud (fused, or straight from a camera)
-    is an input it never saw: a model trained at 5.1 mm spacing, a sparse shell of voxels, fell from
+    is an input it never saw: a model trained at 5.1 mm spacing, a sparse shell of voxels, falls from
     AP@25 0.90 to 0.54 on virtual 4-view beds. So with ``thin``, such a cloud is first thinned
     (``at_training_density``), and points whose voxel lost its points take the prediction of the
-    nearest kept voxel. Clouds at training density are used as they are (thinning them cost 3 points
+    nearest kept voxel. Clouds at training density are used as they are (thinning them costs 3 points
     of AP@25 on the 5.1 mm val50). The network then reads the cloud scaled by ``zoom`` (default:
     ``reading_zoom``); what it returns is in the cloud's own metres again.
     """

@@ -7,11 +7,11 @@ teaches the network to leave between caps. Both come from scikit-learn.
 MeanShift's cost is scikit-learn's per-call overhead: one neighbour query per seed and step, about 185
 a bed. So the seeds climb together first, one query for all per step (``_climb``), and scikit-learn
 then takes one step per distinct seed and one query per centre to drop duplicates, about 61 queries a
-bed with the same labels (val50, session 18: 46.8 against 60.9 ms a bed when seeds were sent 4 steps
-up first, the session-17 code, and 113.6 ms before that). scikit-learn 1.9 runs every
-queried array through narwhals' dataframe checks, which made the clustering of a val50 bed 155-160 ms
-against 83-92 ms with 1.8 (same labels, MeanShift and DBSCAN, on all of val50), so ``pyproject.toml``
-keeps it below 1.9.
+bed with the same labels (val50: 46.8 ms a bed, against 60.9 ms when the seeds climb only 4 steps
+together and 113.6 ms when scikit-learn climbs each seed alone). scikit-learn 1.9 runs every queried
+array through narwhals' dataframe checks, which makes the clustering of a val50 bed 155-160 ms against
+83-92 ms with 1.8 (same labels, MeanShift and DBSCAN, on all of val50), so ``pyproject.toml`` keeps it
+below 1.9.
 """
 
 from __future__ import annotations
@@ -53,10 +53,10 @@ class ClusterConfig:
     min_points / 2 collapsed points); "peaks" = only those of them that hold at least as many points as
     each of their 6 face neighbours, then a second pass over the points left over. A cap's collapsed
     points straddle several bins, which all climb to the same centre, and scikit-learn runs each seed
-    as its own Python loop, so fewer seeds were faster; since the seeds climb together (``_climb``)
-    both take about as long (``bench/perception.py`` prints both). Peaks stay the default for the
-    second pass's small caps: val50 AP@25 99.64 % against 99.60 % with bins (the model shipped in
-    sessions 16-23, session 17)."""
+    as its own Python loop, where fewer seeds would be faster; with the seeds climbing together
+    (``_climb``) both take about as long (``bench/perception.py`` prints both). Peaks are the default
+    for the second pass's small caps: val50 AP@25 99.64 % against 99.60 % with bins (``dense7k`` +
+    ``tune1400``, read at zoom 1.05)."""
 
     def __post_init__(self) -> None:
         if self.merge_ratio is not None and not self.merge_ratio > 0:

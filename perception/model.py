@@ -31,10 +31,11 @@ default scale jitter of 0.9-1.1. The shipped model, fine-tuned on beds scaled by
 1.2 (model card). The network reads a cloud scaled up by this factor, i.e. at its voxel / 1.05: a small
 cap, the kind it misses or tilts wrongly, then spans more voxels, and the factor stays inside
 training's scale jitter. Clustering stays at the model's voxel in the cloud's own metres: caps keep
-their real size. Chosen on val50 for the model shipped in sessions 16-23 (3 mm spacing, MeanShift),
-zoom 1 / 1.025 / 1.05 / 1.075 / 1.1 / 1.15 / 1.2: AP@25 99.30 / 99.42 / 99.64 / 99.49 / 99.47 / 99.44 /
-98.02 %, cosine 0.9961 / 0.9968 / 0.9971 / 0.9969 / 0.9963 / 0.9967 / 0.9971. Older weights record no
-zoom and are read at 1.1, as they were shipped (``perception.train.UNRECORDED_ZOOM``; model card)."""
+their real size. Chosen on val50 (3 mm spacing, MeanShift) for a model trained on 3 mm beds at the
+default jitter (``dense7k`` + ``tune1400``), zoom 1 / 1.025 / 1.05 / 1.075 / 1.1 / 1.15 / 1.2: AP@25
+99.30 / 99.42 / 99.64 / 99.49 / 99.47 / 99.44 / 98.02 %, cosine 0.9961 / 0.9968 / 0.9971 / 0.9969 /
+0.9963 / 0.9967 / 0.9971. Weights that record no zoom are read at 1.1
+(``perception.train.UNRECORDED_ZOOM``)."""
 
 
 @dataclass(frozen=True)
@@ -77,14 +78,14 @@ PRESETS = {
                              offsets=True),
 }
 # slim-no with the coarser levels (stride 2 to 8) wider and the full-resolution ones unchanged: the
-# training step costs about 1.2 times as much, the forward pass 1.05 times (model card: "A wider network")
+# training step costs about 1.2 times as much, the forward pass 1.05 times (model card, "Tried and dropped")
 PRESETS["wide-no"] = replace(PRESETS["slim-no"], channels=(32, 64, 128, 192), up_channels=(48, 48, 96, 128))
-# slim-no with a 5^3 first convolution: at the 4.1 mm voxels the previous model read, points 5.1 mm apart
+# slim-no with a 5^3 first convolution: at 4.1 mm voxels (4.5 mm read at zoom 1.1), points 5.1 mm apart
 # leave a voxel on the cap surface about 5 of its 26 neighbours, and a 5^3 kernel reaches about 16
-# (model card: "A wider first convolution")
+# (model card, "Tried and dropped")
 PRESETS["slim-no-k5"] = replace(PRESETS["slim-no"], first_kernel=5)
-# slim-no with 32 channels in the full-resolution up block instead of 48: its two 3^3 convolutions on
-# every voxel were a third of the network's time. Session 18, 4 training beds, 2 threads, medians of 5
+# slim-no with 32 channels in the full-resolution up block instead of 48: that block's two 3^3
+# convolutions on every voxel take a third of slim-no's time. 4 training beds, 2 threads, medians of 5
 # rounds: a training step 605 against 707 ms, the forward pass 222 against 261 ms
 PRESETS["lean-no"] = replace(PRESETS["slim-no"], up_channels=(48, 32, 64, 64))
 

@@ -261,8 +261,7 @@ def _atomic_save(payload: dict, path: Path) -> None:
 
 
 def validate(model: MushroomNet, scenes) -> dict[str, float]:
-    """The metrics of ``model`` read as it will be (perception.detect, at its own zoom); runs validated
-    before the zoom existed were read at zoom 1, and until session 16 at 1.1."""
+    """The metrics of ``model`` read as it will be (perception.detect, at its own zoom)."""
     from perception.detect import evaluate_on_scenes
 
     metrics = evaluate_on_scenes(model, scenes, methods=("meanshift",))["meanshift"].as_dict()
@@ -299,7 +298,7 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
     start, elapsed_before = 0, 0.0
     if resume:
         state = _load_checkpoint(checkpoint_path, device)
-        # runs saved before a field existed ran with its default
+        # a checkpoint without a field ran with its default
         differ = _differences({**TrainConfig().to_dict(), **state["train_config"]}, config.to_dict())
         if differ:
             raise ValueError(f"{checkpoint_path} was made with a different configuration ({differ}); "
@@ -469,9 +468,9 @@ def _runs(node: dict) -> dict[str, list]:
 def average_weights(paths: list[Path]) -> tuple[MushroomNet, dict]:
     """The mean of the weights and batch-norm statistics of models fine-tuned from one start (a "model
     soup", Wortsman et al. 2022): runs that share a start stay in one basin of the loss, where the mean
-    of their weights is a working model, often better than either, read at no extra cost (the model
-    shipped in sessions 24-25 was one: MODEL_CARD.md); runs from separate starts do not, so they are
-    refused. The mean's training cost is every run behind it, a shared one counted once."""
+    of their weights is a working model, often better than either, read at no extra cost (MODEL_CARD.md:
+    the ``long10k`` soup of two fine-tunes); runs from separate starts do not, so they are refused. The
+    mean's training cost is every run behind it, a shared one counted once."""
     if len(paths) < 2:
         raise ValueError("averaging needs two weights files or more")
     loaded = [load_weights(Path(path)) for path in paths]
@@ -501,8 +500,8 @@ def average_weights(paths: list[Path]) -> tuple[MushroomNet, dict]:
 
 
 UNRECORDED_ZOOM = 1.1
-"""Weights saved before session 16 record no inference zoom; the models among them that were shipped
-were read at 1.1."""
+"""The zoom weights and checkpoints without an ``inference_zoom`` entry are read at: the zoom such
+models are tuned for."""
 
 
 def save_weights(model: MushroomNet, path: Path, **meta) -> None:

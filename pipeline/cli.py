@@ -790,7 +790,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "encoding's alone, as in the paper")
     evaluate.add_argument("--spacing", type=_spacing,
                           help=f"the same beds at this point spacing in metres (default {SPACING_HELP}; "
-                               "0.0051 gives the 5.1 mm sets of the model card's older figures)")
+                               "e.g. 0.0051 for 5.1 mm sets)")
     evaluate.add_argument("--zoom", type=_zoom, help="scale the network reads clouds at (default: the one the weights record, "
                           f"{SHIPPED_ZOOM} for the shipped model, 1.1 for weights that record none; lowered for beds "
                           "sparser than the training beds)")

@@ -111,7 +111,7 @@ def test_cap_balanced_loss_averages_per_cap_then_over_caps():
     assert terms["orientation"].item() == pytest.approx((0.01 + 0.04) / 2, rel=1e-6)
     bce = lambda logit, target: -np.log(1 / (1 + np.exp(-logit))) if target else -np.log(1 - 1 / (1 + np.exp(-logit)))
     per_cap = [np.mean([bce(0.0, 1)] * 3), bce(1.0, 1)]
-    # cap voxels carry the same total weight as before (4), now split evenly between the two caps
+    # cap voxels carry the same total weight as without balancing (4), split evenly between the two caps
     assert terms["existence"].item() == pytest.approx((2 * sum(per_cap) + bce(-1.0, 0)) / 5, rel=1e-6)
     with pytest.raises(ValueError, match="cap weights"):
         loss_terms(output, existence, torch.zeros(5, 3), orientation, config)
@@ -344,7 +344,7 @@ def test_a_resumed_averaging_run_validates_and_ships_at_the_zoom_its_checkpoint_
                          validation_scenes=1, scene=SMALL_SCENES, average_from=0.3)
     train(config, tmp_path, progress=False, rerun=False, stop_at=2)
     state = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
-    del state["inference_zoom"]  # as saved before session 16, read at UNRECORDED_ZOOM
+    del state["inference_zoom"]  # a checkpoint that records no zoom is read at UNRECORDED_ZOOM
     torch.save(state, tmp_path / "checkpoint.pt")
     validation_zooms.clear()
     weights = train(config, tmp_path, resume=True, progress=False, rerun=False)

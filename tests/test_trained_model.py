@@ -24,6 +24,6 @@ def test_shipped_model_is_small_and_says_how_it_was_made():
     assert DEFAULT_WEIGHTS.stat().st_size <= 30e6
     _, meta = load_weights(DEFAULT_WEIGHTS)
     assert meta["network"]["normals"] is True and meta["network"]["offsets"] is True and meta["iterations"] > 0
-    # the budget: at most 3 hours of training on 2 cores, all stages together (runs made before
-    # session 15 wrote the total only when fine-tuned)
+    # the budget: at most 3 hours of training on 2 cores, all stages together (weights without
+    # total_train_seconds come from a single run, whose train_seconds is the total)
     assert 0 < meta.get("total_train_seconds", meta["train_seconds"]) <= 3 * 3600

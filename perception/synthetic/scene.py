@@ -45,8 +45,8 @@ class SceneConfig:
     voxel: float = 0.003
     """Point spacing (metres): the down-sampling voxel of the visibility step, jittered by ``jitter``.
     Finer than the network's 4.1-4.5 mm voxel, so that every voxel the surface crosses holds a point,
-    as in a depth camera's or a fused cloud (DESIGN.md section 6b: 1.2 mm spacing). The generator's
-    spacing was 5.1 mm before session 15, a gappy shell of voxels (model card)."""
+    as in a depth camera's or a fused cloud (DESIGN.md section 6b: 1.2 mm spacing). At 5.1 mm a cap is
+    a gappy shell of voxels (``perception.detect.predict``)."""
     jitter: tuple[float, float] = (0.8, 1.2)
     oversample: float = 3.0
     """Surface samples per voxel of area before down-sampling, jittered by ``jitter``."""
