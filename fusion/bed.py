@@ -11,14 +11,13 @@ CAMERA_RANGE = 3.0
 
 
 def estimate_bed_frame(points: np.ndarray, distance: float = 0.008, seed: int = 0,
-                       robust_scale: float = 0.05, fit_points: int | None = None) -> np.ndarray:
+                       robust_scale: float = 0.05, fit_points: int | None = None,
+                       normals: np.ndarray | None = None) -> np.ndarray:
     """T_input_bed for a cloud of a bed (N, 3) in metres, from a RANSAC plane through the soil (inliers
     within ``distance``) refined by Tukey-weighted least squares of scale ``robust_scale`` (metres).
 
-    z points to the side the sensor looked from: the input origin when it is off the plane and within
-    ``CAMERA_RANGE`` of the cloud (a camera-frame cloud), otherwise the side where most off-plane points
-    lie (caps stand up from the soil): a shifted or georeferenced cloud's origin says nothing of it.
-    The origin is the centroid's projection onto the plane; x follows the input's x projected onto
+    z points to the side the bed was seen from, decided by the cloud itself (``up_side``), not by where
+    the input frame's origin happens to lie. The origin is the centroid's projection onto the plane; x follows the input's x projected onto
     the plane. With ``fit_points``, the plane is fitted to about that many of the points (every k-th):
     a plane needs no more; the centroid is still that of all of them.
     """
@@ -36,11 +35,7 @@ def estimate_bed_frame(points: np.ndarray, distance: float = 0.008, seed: int = 
     (a, b, c, d), _ = cloud.segment_plane(distance, 3, 200)
     normal, offset = _robust_plane(points, np.array([a, b, c]) / np.linalg.norm([a, b, c]),
                                    d / np.linalg.norm([a, b, c]), robust_scale)
-    if abs(offset) > 0.05 and np.linalg.norm(centroid) < CAMERA_RANGE:
-        up = normal if offset > 0 else -normal
-    else:
-        heights = points @ normal + offset
-        up = normal if np.sum(heights > distance) >= np.sum(heights < -distance) else -normal
+    up = up_side(normal, points @ normal + offset, distance, normals, offset, centroid)
     origin = centroid - (centroid @ normal + offset) * normal
     x = np.array([1.0, 0.0, 0.0]) - up[0] * up
     if np.linalg.norm(x) < 1e-6:
@@ -50,6 +45,27 @@ def estimate_bed_frame(points: np.ndarray, distance: float = 0.008, seed: int = 
     T[:3, :3] = np.stack([x, np.cross(up, x), up], 1)
     T[:3, 3] = origin
     return T
+
+
+def up_side(normal: np.ndarray, heights: np.ndarray, distance: float, normals: np.ndarray | None,
+            offset: float, centroid: np.ndarray) -> np.ndarray:
+    """The bed normal turned to the side the bed was seen from, by the first of these that is clear:
+    the relief (caps stand higher above the soil than its cracks go below it: the 99.5th percentile
+    of the heights clearly beyond the 0.5th); the cloud's own normals (a sensor's normals face it: a
+    clear majority on one side; second, since files carry normals of either sign); the input origin
+    when it could be a camera (off the plane, within ``CAMERA_RANGE``); else the side of the input's +z."""
+    clear = 0.2
+    low, high = np.percentile(heights, [0.5, 99.5])
+    above, below = max(high, 0.0), max(-low, 0.0)
+    if max(above, below) > 2 * distance and max(above, below) > (1 + clear) * min(above, below):
+        return normal if above > below else -normal
+    if normals is not None and len(normals):
+        facing = np.sign(np.asarray(normals, np.float64) @ normal)
+        if abs(facing.sum()) > clear * len(facing):
+            return normal if facing.sum() > 0 else -normal
+    if abs(offset) > 0.05 and np.linalg.norm(centroid) < CAMERA_RANGE:
+        return normal if offset > 0 else -normal
+    return normal if normal[2] >= 0 else -normal
 
 
 def _robust_plane(points: np.ndarray, normal: np.ndarray, offset: float, scale: float,

@@ -1,0 +1,57 @@
+"""Which side of the bed is up comes from the cloud itself (fusion/bed.py ``up_side``), wherever the
+input frame's origin lies: above the bed (a camera), below it, beside it or far away."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from fusion.bed import estimate_bed_frame
+
+
+@pytest.fixture(scope="module")
+def bed_points():
+    from perception.synthetic.scene import SceneConfig, generate_scene
+
+    return generate_scene(7, SceneConfig(mushrooms=(15, 15))).points  # stored z up, soil near z = 0
+
+
+@pytest.mark.parametrize("shift", [(0.1, -0.2, 0.5), (0.1, -0.2, -0.45), (0.8, 0.0, 0.0), (0.0, 0.0, 10.0)],
+                         ids=["origin below", "origin above", "origin beside", "origin far below"])
+@pytest.mark.parametrize("tilt_deg", [0.0, 25.0])
+def test_up_points_out_of_the_soil_wherever_the_origin_lies(bed_points, shift, tilt_deg):
+    """The bed is moved so that the input origin lies below, above, beside or far from it (and tilted):
+    the bed frame's z is the way the caps stand in every case."""
+    rotation = Rotation.from_euler("xy", [tilt_deg, -0.6 * tilt_deg], degrees=True).as_matrix()
+    moved = bed_points @ rotation.T + np.asarray(shift)
+    T = estimate_bed_frame(moved)
+    true_up = rotation @ np.array([0.0, 0.0, 1.0])
+    assert T[:3, 2] @ true_up > np.cos(np.radians(5))
+
+
+def test_a_bed_seen_upside_down_in_a_camera_frame_has_up_towards_the_camera(bed_points):
+    """A camera 0.45 m above the bed looking down: its frame's z points into the bed, and up is -z."""
+    flip = Rotation.from_euler("x", 180, degrees=True).as_matrix()
+    in_camera = (bed_points - [0.0, 0.0, 0.45]) @ flip.T
+    T = estimate_bed_frame(in_camera)
+    assert T[:3, 2] @ np.array([0.0, 0.0, -1.0]) > np.cos(np.radians(5))
+
+
+def _flat_patch(seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-0.2, 0.2, (4000, 2))
+    return np.c_[xy, rng.normal(0, 0.0005, len(xy))]
+
+
+@pytest.mark.parametrize("camera_z", [0.4, -0.4])
+def test_a_flat_bed_without_relief_turns_up_towards_a_camera_origin(camera_z):
+    """No caps, no relief: the only evidence is the origin, a camera 0.4 m off the plane."""
+    T = estimate_bed_frame(_flat_patch() - [0.0, 0.0, camera_z])
+    assert T[2, 2] * np.sign(camera_z) > 0.99
+
+
+def test_normals_given_with_the_cloud_decide_a_flat_bed():
+    """A flat patch (no relief to go by) whose normals face -z has up -z, wherever the origin."""
+    points = _flat_patch() + [0.0, 0.0, 5.0]
+    normals = np.tile([0.0, 0.0, -1.0], (len(points), 1))
+    assert estimate_bed_frame(points, normals=normals)[2, 2] < -0.99
+    assert estimate_bed_frame(points, normals=-normals)[2, 2] > 0.99
