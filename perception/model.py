@@ -175,6 +175,10 @@ class MushroomNet(nn.Module):
 
     def forward(self, x: SparseTensor) -> torch.Tensor:
         """(V, 5) raw outputs per input voxel: existence logit, residual (LENGTH_UNITs), orientation."""
+        return self.head(self.features(x))
+
+    def features(self, x: SparseTensor) -> torch.Tensor:
+        """(V, up_channels[0]) per-voxel features the head reads: the backbone's last layer."""
         s1 = self.block1(self.relu(self.norm1(self.conv1(x))))
         s2 = self._step_down(self.down2, s1)
         s4 = self._step_down(self.down3, s2)
@@ -182,8 +186,7 @@ class MushroomNet(nn.Module):
         up = self._step_up(self.up4, s8, s4)
         up = self._step_up(self.up3, sparse_cat(s4, up), s2)
         up = self._step_up(self.up2, sparse_cat(s2, up), s1)
-        features = self.relu(self.conv1_tr(sparse_cat(s1, up))).features
-        return self.head(features)
+        return self.relu(self.conv1_tr(sparse_cat(s1, up))).features
 
 
 _NORMED_CONVOLUTIONS = (("conv1", "norm1"), ("conv2", "norm2"), ("conv", "norm"))
