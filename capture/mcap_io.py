@@ -599,3 +599,75 @@ def read_fused_units(path: str | os.PathLike) -> list[RecordedUnit]:
 def read_documents(path: str | os.PathLike, topic: str = DETECTIONS_TOPIC) -> list[tuple[int, dict]]:
     """(log_time, document) of every JSON message on ``topic``, in log-time order."""
     return [(log_time, message) for _, log_time, message in _decoded(Path(path), [topic])]
+
+
+@dataclass(frozen=True)
+class Recovery:
+    """What ``recover_recording`` kept of a cut recording."""
+
+    path: Path
+    messages: int
+    depth_images: int
+    """Depth images among the messages (one per frame and sensor; the last may lack its other parts)."""
+
+
+def recover_recording(partial: str | os.PathLike, out: str | os.PathLike | None = None,
+                      overwrite: bool = False) -> Recovery:
+    """A valid MCAP (footer, summary, index) from a recording whose process died before closing it
+    (``<name>.mcap.partial``): every schema, channel and message of every whole record, in file order,
+    written to ``out`` (default: the name without ``.partial``). A chunk the crash cut is lost whole
+    (its messages cannot be read). Raises ValueError on a file that is not an MCAP or holds no
+    message, FileExistsError when ``out`` exists and ``overwrite`` is not set."""
+    from mcap.writer import CompressionType, Writer
+
+    partial = Path(partial)
+    out = Path(out) if out is not None else partial.with_name(partial.name.removesuffix(".partial"))
+    if out == partial:
+        raise ValueError(f"{partial} does not end in .partial: give the recovered file's name")
+    if out.exists() and not overwrite:
+        raise FileExistsError(f"{out} exists; pass overwrite to replace it")
+    with open(partial, "rb") as file:
+        if file.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
+            raise ValueError(f"{partial} is not an MCAP recording")
+        file.seek(0)
+        size = os.fstat(file.fileno()).st_size
+        scratch = out.with_name(out.name + ".recovering")
+        messages = frames = 0
+        channels: dict[int, tuple[int, Channel]] = {}
+        schemas: dict[int, int] = {0: 0}
+        try:
+            with open(scratch, "wb") as target:
+                writer = Writer(target, compression=CompressionType.ZSTD)
+                writer.start(profile="", library="mushroom-pose recover")
+                for record in _whole_records(file, size):
+                    if isinstance(record, Schema) and record.id not in schemas:
+                        schemas[record.id] = writer.register_schema(record.name, record.encoding, record.data)
+                    elif isinstance(record, Channel) and record.id not in channels and record.schema_id in schemas:
+                        channels[record.id] = (writer.register_channel(record.topic, record.message_encoding,
+                                                                       schemas[record.schema_id], record.metadata),
+                                               record)
+                    elif isinstance(record, Message) and record.channel_id in channels:
+                        channel_id, channel = channels[record.channel_id]
+                        writer.add_message(channel_id, record.log_time, record.data, record.publish_time,
+                                           record.sequence)
+                        messages += 1
+                        frames += channel.topic.endswith("/depth")
+                writer.finish()
+            if messages == 0:
+                raise ValueError(f"{partial} holds no whole message to recover")
+            os.replace(scratch, out)
+        finally:
+            scratch.unlink(missing_ok=True)
+    return Recovery(out, messages, frames)
+
+
+def _whole_records(file: Any, size: int) -> Iterator[Any]:
+    """The file's records (chunks opened) up to the first one the file cuts."""
+    records = StreamReader(_ExactReads(file), record_size_limit=size).records
+    while True:
+        try:
+            yield next(records)
+        except StopIteration:
+            return
+        except (McapError, EOFError, ValueError):
+            return
