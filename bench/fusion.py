@@ -22,7 +22,7 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 import open3d as o3d  # noqa: E402
 
-from capture.virtual import Turntable  # noqa: E402
+from common.geometry import Turntable  # noqa: E402
 from fusion.cloud import FusionConfig, fuse  # noqa: E402
 from fusion.registration import (RegistrationConfig, fpfh, pose_change, prepare_view, register_global,  # noqa: E402
                                  register_pair)

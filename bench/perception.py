@@ -36,7 +36,7 @@ from pipeline.process import reuse_freed_memory
 POSE_REPEATS = 25
 
 
-def main() -> None:
+def parse_arguments() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", type=Path, default=DEFAULT_WEIGHTS)
     parser.add_argument("--scenes", type=int, default=20)
@@ -44,10 +44,15 @@ def main() -> None:
     parser.add_argument("--zoom", type=float, help="scale the network reads clouds at (default: the model's own)")
     parser.add_argument("--baseline-scenes", type=int, default=5, help="scenes for the slow baseline clustering")
     args = parser.parse_args()
-    reuse_freed_memory()
     if args.scenes < 1 or not 1 <= args.baseline_scenes <= args.scenes:
         parser.error("--scenes must be at least 1 and --baseline-scenes between 1 and --scenes: the ratio "
                      "against the baseline is measured on the same scenes")
+    return args
+
+
+def main() -> None:
+    args = parse_arguments()
+    reuse_freed_memory()
     torch.set_num_threads(2)
     model, meta = load_weights(args.model)
     args.zoom = model.inference_zoom if args.zoom is None else args.zoom

@@ -272,7 +272,7 @@ def thin_xyz(cloud_path: Path, thin_mm: float | None, out_ply: Path) -> np.ndarr
 def stage_seconds(ply: Path, detect_args: list[str]) -> tuple[dict, np.ndarray, int]:
     """Seconds per stage of ``detect`` on ``ply`` in this process (weights, load, bed plane, network,
     instances, pose), with the calls of pipeline.cli.cmd_detect; also T_input_bed and the number of caps."""
-    from capture.frames import transform_points
+    from common.geometry import transform_points
     from fusion.bed import estimate_bed_frame
     from perception.detect import DEFAULT_WEIGHTS, detect_points, transform_result
     from perception.instances import ClusterConfig

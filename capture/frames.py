@@ -6,6 +6,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+# importable from here too for pipeline/cli.py, fusion/cloud.py and fusion/integrate.py
+from common.geometry import transform_points  # noqa: F401
+
 
 @dataclass(frozen=True)
 class CameraIntrinsics:
@@ -71,67 +74,6 @@ def backproject(depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> tuple[np.n
 def frame_to_points(frame: DepthFrame) -> np.ndarray:
     """A frame's valid depth as points (N, 3) in metres in the camera frame."""
     return backproject(frame.depth_m, frame.intrinsics)[0]
-
-
-def transform_points(T_parent_child: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Points given in the child frame, expressed in the parent frame."""
-    return (points @ T_parent_child[:3, :3].T + T_parent_child[:3, 3]).astype(points.dtype, copy=False)
-
-
-def look_at(eye: np.ndarray, target: np.ndarray, up_hint: np.ndarray = np.array([0.0, 1.0, 0.0])) -> np.ndarray:
-    """T_world_camera of an OpenCV camera at ``eye`` looking at ``target``."""
-    eye, target = np.asarray(eye, np.float64), np.asarray(target, np.float64)
-    forward = target - eye
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, up_hint)
-    if np.linalg.norm(right) < 1e-6:
-        right = np.cross(forward, np.array([1.0, 0.0, 0.0]))
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([right, down, forward], 1)
-    T[:3, 3] = eye
-    return T
-
-
-def voxel_representatives(points: np.ndarray, voxel: float) -> np.ndarray:
-    """Indices of one point per occupied voxel (the first one met), in ascending order.
-
-    A dense grid of first indices replaces sorting whenever the cloud's box holds few enough voxels
-    (a bed at a few millimetres does): writing indices in reverse leaves each cell's first point.
-    """
-    keys = np.floor(points / voxel).astype(np.int64)
-    keys -= keys.min(0)
-    span = keys.max(0) + 1
-    flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
-    cells = int(np.prod(span))
-    if cells > 20 * len(points) + 1_000_000:
-        return np.sort(np.unique(flat, return_index=True)[1])
-    first = np.full(cells, -1, np.int64)
-    first[flat[::-1]] = np.arange(len(points) - 1, -1, -1)
-    kept = first[first >= 0]
-    kept.sort()
-    return kept
-
-
-def cell_lookup(cells: np.ndarray, queries: np.ndarray) -> np.ndarray:
-    """Row of ``cells`` (M, 3) integer grid cells equal to each query cell (..., 3), or -1 if none."""
-    cells, queries = np.asarray(cells, np.int64), np.asarray(queries, np.int64)
-    flat_queries = queries.reshape(-1, 3)
-    if len(cells) == 0 or len(flat_queries) == 0:
-        return np.full(queries.shape[:-1], -1, np.int64)
-    low = np.minimum(cells.min(0), flat_queries.min(0))
-    span = np.maximum(cells.max(0), flat_queries.max(0)) - low + 1
-
-    def key(grid: np.ndarray) -> np.ndarray:
-        grid = grid - low
-        return (grid[..., 0] * span[1] + grid[..., 1]) * span[2] + grid[..., 2]
-
-    cell_keys = key(cells)
-    order = np.argsort(cell_keys)
-    query_keys = key(queries)
-    row = order[np.minimum(np.searchsorted(cell_keys[order], query_keys), len(order) - 1)]
-    return np.where(cell_keys[row] == query_keys, row, -1)
 
 
 def log_rerun(rec, frame: DepthFrame, entity: str | None = None, pinhole: bool = True) -> None:

@@ -625,7 +625,7 @@ def recover_recording(partial: str | os.PathLike, out: str | os.PathLike | None 
     if out == partial:
         raise ValueError(f"{partial} does not end in .partial: give the recovered file's name")
     if out.exists() and not overwrite:
-        raise FileExistsError(f"{out} exists; pass overwrite to replace it")
+        raise FileExistsError(f"{out} exists")
     with open(partial, "rb") as file:
         if file.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
             raise ValueError(f"{partial} is not an MCAP recording")

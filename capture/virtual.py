@@ -14,6 +14,7 @@ import open3d as o3d
 
 from capture.frames import CameraIntrinsics, DepthFrame, backproject
 from capture.source import Source
+from common.geometry import Turntable, look_at
 
 
 @dataclass(frozen=True)
@@ -123,34 +124,9 @@ def to_depth_frame(depth_m: np.ndarray, intrinsics: CameraIntrinsics, sensor: Se
                       timestamp_ns, sensor_id, None, T_world_camera, turntable_angle)
 
 
-@dataclass(frozen=True)
-class Turntable:
-    """A camera turning about an axis: ``T_world_camera(angle)`` is the reference pose rotated by ``angle``."""
-
-    axis_point: np.ndarray
-    axis_direction: np.ndarray
-    T_world_reference: np.ndarray
-
-    def rotation(self, angle: float) -> np.ndarray:
-        """T_world_world of a turn by ``angle`` (radians, right-handed about the axis)."""
-        from scipy.spatial.transform import Rotation
-
-        direction = np.asarray(self.axis_direction, np.float64)
-        direction = direction / np.linalg.norm(direction)
-        T = np.eye(4)
-        T[:3, :3] = Rotation.from_rotvec(angle * direction).as_matrix()
-        T[:3, 3] = self.axis_point - T[:3, :3] @ self.axis_point
-        return T
-
-    def T_world_camera(self, angle: float) -> np.ndarray:
-        return self.rotation(angle) @ self.T_world_reference
-
-
 def circle_rig(target: np.ndarray, radius: float, height: float,
                axis: np.ndarray = np.array([0.0, 0.0, 1.0])) -> Turntable:
     """A camera ``radius`` off the axis through ``target``, ``height`` above it, looking at ``target``."""
-    from capture.frames import look_at
-
     axis = np.asarray(axis, np.float64) / np.linalg.norm(axis)
     side = np.cross(axis, [0.0, 1.0, 0.0] if abs(axis[1]) < 0.9 else [1.0, 0.0, 0.0])
     side /= np.linalg.norm(side)

@@ -1,6 +1,6 @@
 """Turntable and multi-camera calibration, and the rig file ``live`` / ``replay`` load.
 
-The forward model is ``capture.virtual.Turntable``: a camera pose is a reference pose turned by an
+The forward model is ``common.geometry.Turntable``: a camera pose is a reference pose turned by an
 angle about an axis (point + direction). Calibration recovers it from one recorded turn: chained
 registration of consecutive views (closed into a loop by the pose graph when the turn is complete),
 then a plane fit of the camera centres (axis direction) and a circle fit in that plane (axis point).
@@ -16,7 +16,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from capture.frames import DepthFrame
-from capture.virtual import Turntable
+from common.files import write_atomically
+from common.geometry import Turntable
 from fusion.registration import (RegistrationConfig, chain_poses, check_frames, prepare_view, refine_poses,
                                  register_unknown)
 
@@ -95,14 +96,7 @@ class Rig:
     def save(self, path: str | Path) -> None:
         """Write atomically (a temporary name, then renamed), so a crash never leaves half a rig and a
         failed write leaves the earlier file whole."""
-        path = Path(path)
-        tmp = path.with_name(path.name + ".partial")
-        try:
-            tmp.write_text(self.to_json())
-            tmp.replace(path)
-        except OSError:
-            tmp.unlink(missing_ok=True)
-            raise
+        write_atomically(path, self.to_json())
 
     @staticmethod
     def load(path: str | Path) -> "Rig":

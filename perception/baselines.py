@@ -74,7 +74,10 @@ def similarity(center: np.ndarray, rotation: np.ndarray, scale: float) -> np.nda
 
 def cap_of_transform(transform: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """(centre, rotation, s) of the template moved by a similarity ``transform``."""
+    transform = np.nan_to_num(np.asarray(transform, np.float64))  # a failed registration: no cap, no warning
     scale = float(np.cbrt(abs(np.linalg.det(transform[:3, :3]))))
+    if scale <= 1e-12:
+        return transform[:3, 3].copy(), np.eye(3), 0.0
     return transform[:3, 3].copy(), transform[:3, :3] / scale, scale * TEMPLATE_RADIUS
 
 

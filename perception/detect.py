@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from capture.frames import cell_lookup, transform_points, voxel_representatives
+from common.geometry import cell_lookup, transform_points, voxel_representatives
 from perception.cap import Mushroom
 from perception.instances import ClusterConfig, cluster
 from perception.model import LENGTH_UNIT, MushroomNet, inference_model, voxel_features
@@ -146,8 +146,12 @@ def network_output(model: MushroomNet, coords: torch.Tensor, zoomed_centroids: t
     features = torch.from_numpy(voxel_features(model.config, zoomed_centroids.numpy())).to(device)
     out = inference_model(model)(SparseTensor(features, coords)).double().cpu()
     centroids = zoomed_centroids.numpy() / zoom
-    return (centroids, torch.sigmoid(out[:, 0]).numpy(), centroids + out[:, 1:4].numpy() * LENGTH_UNIT / zoom,
-            out[:, 4].clamp(0.0, 1.0).numpy())
+    encoding = model.config.encoding
+    centers = out[:, 1:4].numpy() * LENGTH_UNIT / zoom
+    if encoding != "explicit-centre":
+        centers += centroids
+    orientation = out[:, 4:7].numpy() if encoding == "explicit-orientation" else out[:, 4].clamp(0.0, 1.0).numpy()
+    return centroids, torch.sigmoid(out[:, 0]).numpy(), centers, orientation
 
 
 def _nearest_voxel(points: np.ndarray, voxel: float, coords: np.ndarray, centroids: np.ndarray) -> np.ndarray:
@@ -251,21 +255,42 @@ def log_rerun(rec, result: SceneResult, points: np.ndarray, entity: str = "world
 
 
 def evaluate_on_scenes(model: MushroomNet, scenes, methods=("meanshift", "dbscan"), height: str = "free",
-                       axis: str = "surface", progress: bool = False, zoom: float | None = None) -> dict:
+                       axis: str = "surface", progress: bool = False, zoom: float | None = None,
+                       use_ray: bool = False, ray_address: str | None = None) -> dict:
     """The paper's metrics of ``model`` on synthetic scenes, per clustering method (one network pass
-    per scene, read at ``zoom``, by default the model's own)."""
+    per scene, read at ``zoom``, by default the model's own); with ``use_ray`` each scene is read by a
+    Ray task (the same caps: a scene's reading depends on the scene and the model alone)."""
     from tqdm import tqdm
 
-    from perception.evaluate import SceneCaps, evaluate
-    from perception.synthetic.dataset import ground_truth_mask
+    from perception.evaluate import evaluate
 
+    scenes = list(scenes)
+    items = [(scene, methods, height, axis, zoom) for scene in scenes]
+    if use_ray:
+        from common.distributed import ray_map
+
+        read = ray_map(scene_caps, items, ray_address, shared=(model,))
+    else:
+        read = (scene_caps(model, *item) for item in items)
     preds: dict[str, list] = {m: [] for m in methods}
     gts = []
-    for scene in tqdm(scenes, desc="evaluating", unit="scene", disable=not progress, leave=False):
-        prediction = predict(model, scene.points, zoom=zoom)
+    for found, truth in tqdm(read, desc="evaluating", unit="scene", total=len(items), disable=not progress,
+                             leave=False):
         for method in methods:
-            _, fit = find_caps(prediction, model.config.voxel, ClusterConfig(method=method), height, axis)
-            preds[method].append(SceneCaps(fit.centers, fit.rotations, fit.scales, fit.scores))
-        visible = ground_truth_mask(scene)
-        gts.append(SceneCaps(scene.centers[visible], scene.rotations[visible], scene.scales[visible]))
+            preds[method].append(found[method])
+        gts.append(truth)
     return {method: evaluate(preds[method], gts) for method in methods}
+
+
+def scene_caps(model: MushroomNet, scene, methods, height: str, axis: str, zoom: float | None):
+    """A synthetic scene's caps per clustering method, and its visible ground truth (SceneCaps)."""
+    from perception.evaluate import SceneCaps
+    from perception.synthetic.dataset import ground_truth_mask
+
+    prediction = predict(model, scene.points, zoom=zoom)
+    found = {}
+    for method in methods:
+        _, fit = find_caps(prediction, model.config.voxel, ClusterConfig(method=method), height, axis)
+        found[method] = SceneCaps(fit.centers, fit.rotations, fit.scales, fit.scores)
+    visible = ground_truth_mask(scene)
+    return found, SceneCaps(scene.centers[visible], scene.rotations[visible], scene.scales[visible])

@@ -23,7 +23,7 @@ import sklearn
 from sklearn.cluster import DBSCAN, MeanShift, get_bin_seeds
 from sklearn.neighbors import KDTree
 
-from capture.frames import cell_lookup
+from common.geometry import cell_lookup
 
 METHODS = ("meanshift", "dbscan")
 MEAN_SHIFT_MAX_ITER = 300

@@ -38,6 +38,9 @@ default jitter (``dense7k`` + ``tune1400``), zoom 1 / 1.025 / 1.05 / 1.075 / 1.1
 (``perception.train.UNRECORDED_ZOOM``)."""
 
 
+ENCODINGS = ("implicit", "explicit-centre", "explicit-orientation")
+
+
 @dataclass(frozen=True)
 class NetworkConfig:
     channels: tuple[int, int, int, int] = (32, 64, 128, 256)
@@ -54,10 +57,23 @@ class NetworkConfig:
     offsets: bool = False
     """Also give the centroid's place inside its voxel, scaled to [-1, 1) per axis: voxels drop where
     in the 4.5 mm cell a point lies, and a small cap spans only 4-6 voxels."""
+    encoding: str = "implicit"
+    """What the head predicts per voxel besides existence: ``implicit`` (the paper's: the residual to
+    the cap centre and the orientation value), or one of the paper's Table 2 ablations,
+    ``explicit-centre`` (the cap centre itself) or ``explicit-orientation`` (the cap's unit axis)."""
+
+    def __post_init__(self) -> None:
+        if self.encoding not in ENCODINGS:
+            raise ValueError(f"unknown encoding {self.encoding!r}; use one of {', '.join(ENCODINGS)}")
 
     @property
     def in_channels(self) -> int:
         return 1 + 3 * self.normals + 3 * self.offsets
+
+    @property
+    def out_channels(self) -> int:
+        """Existence, centre (3), orientation value (1) or axis (3)."""
+        return 7 if self.encoding == "explicit-orientation" else 5
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -80,6 +96,9 @@ PRESETS = {
 # slim-no with the coarser levels (stride 2 to 8) wider and the full-resolution ones unchanged: the
 # training step costs about 1.2 times as much, the forward pass 1.05 times (model card, "Tried and dropped")
 PRESETS["wide-no"] = replace(PRESETS["slim-no"], channels=(32, 64, 128, 192), up_channels=(48, 48, 96, 128))
+# the paper's Table 2 ablations: slim-no predicting the centre or the axis explicitly
+PRESETS["slim-no-explicit-centre"] = replace(PRESETS["slim-no"], encoding="explicit-centre")
+PRESETS["slim-no-explicit-orientation"] = replace(PRESETS["slim-no"], encoding="explicit-orientation")
 # slim-no with a 5^3 first convolution: at 4.1 mm voxels (4.5 mm read at zoom 1.1), points 5.1 mm apart
 # leave a voxel on the cap surface about 5 of its 26 neighbours, and a 5^3 kernel reaches about 16
 # (model card, "Tried and dropped")
@@ -165,7 +184,7 @@ class MushroomNet(nn.Module):
         self.conv1_tr = SubmanifoldConv3d(c1 + u2, u1, 1)
         h1, h2 = config.head_hidden
         self.head = nn.Sequential(nn.Linear(u1, h1), nn.ReLU(), nn.Dropout(config.dropout),
-                                  nn.Linear(h1, h2), nn.ReLU(), nn.Dropout(config.dropout), nn.Linear(h2, 5))
+                                  nn.Linear(h1, h2), nn.ReLU(), nn.Dropout(config.dropout), nn.Linear(h2, config.out_channels))
 
     def _step_down(self, stage: nn.ModuleDict, x: SparseTensor) -> SparseTensor:
         return stage["block"](self.relu(stage["norm"](stage["conv"](x))))
@@ -174,7 +193,8 @@ class MushroomNet(nn.Module):
         return stage["block"](self.relu(stage["norm"](stage["conv"](x, target))))
 
     def forward(self, x: SparseTensor) -> torch.Tensor:
-        """(V, 5) raw outputs per input voxel: existence logit, residual (LENGTH_UNITs), orientation."""
+        """(V, out_channels) raw outputs per input voxel: existence logit, residual (LENGTH_UNITs; the centre
+        with ``explicit-centre``), orientation value (the axis, 3, with ``explicit-orientation``)."""
         return self.head(self.features(x))
 
     def features(self, x: SparseTensor) -> torch.Tensor:

@@ -1,9 +1,11 @@
-"""The paper's Tables 1, 3 and 4 (section 4.2) on our synthetic sets, its figures beside ours, with the
-median milliseconds per bed of every method (Table 2, the explicit-encoding ablations, needs networks
-trained for it and is not part of this module yet).
+"""The paper's Tables 1-4 (section 4.2) on our synthetic sets, its figures beside ours, with the median
+milliseconds per bed of every method.
 
 - Table 1: template matching by RANSAC (perception.baselines) with FPFH features, our network's last
   feature layer, and those plus the 5 encoding outputs; AP at IoU 0.25 (and 0.5).
+- Table 2: the implicit encoding against the explicit centre and the explicit orientation, three
+  networks trained with one recipe, seed and budget (``ENCODING_RUNS``), each read with its encoding's
+  own pose (the axis from the encoding, no surface refinement, as the paper's).
 - Table 3: our pipeline with DBSCAN and with MeanShift; AP at IoU 0.25 and 0.5.
 - Table 4: scale and angle errors of the best RANSAC row, ours, and ours refined by ICP.
 """
@@ -17,7 +19,14 @@ import numpy as np
 
 from perception.evaluate import EvalResult, SceneCaps, evaluate
 
-TABLES = (1, 3, 4)
+TABLES = (1, 2, 3, 4)
+ENCODING_RUNS = {"implicit": "slim-no", "explicit-centre": "slim-no-explicit-centre",
+                 "explicit-orientation": "slim-no-explicit-orientation"}
+"""Table 2's rows and the network preset (and run folder name) each is trained as."""
+PAPER_ENCODINGS = {"explicit-centre": ("explicit center + implicit orientation", 0.2535),
+                   "explicit-orientation": ("implicit center + explicit orientation", 0.4390),
+                   "implicit": ("implicit center + implicit orientation", 0.9957)}
+"""The paper's Table 2, AP at IoU 0.25."""
 PAPER_RANSAC = {"fpfh": ("pre-trained FCGF", 0.7574), "network": ("fine-tuned FCGF", 0.8740),
                 "network+encoding": ("fine-tuned FCGF + pose encoding", 0.8017)}
 """The paper's Table 1 (its features; ours in their place: FPFH, since FCGF's 3DMatch weights cannot be
@@ -71,6 +80,25 @@ def ransac_rows(model, scenes, truth: list[SceneCaps], progress: bool = False) -
     return rows
 
 
+def encoding_rows(models: dict, scenes, truth: list[SceneCaps], progress: bool = False) -> list[Row]:
+    """Table 2: each encoding's network (``models[encoding]``) with MeanShift and the encoding's own axis."""
+    from tqdm import tqdm
+
+    from perception.detect import find_caps, predict
+    from perception.instances import ClusterConfig
+
+    rows = []
+    for encoding, model in models.items():
+        found, seconds = [], []
+        for scene in tqdm(scenes, desc=encoding, unit="bed", disable=not progress, leave=False):
+            start = time.perf_counter()
+            _, fit = find_caps(predict(model, scene.points), model.config.voxel, ClusterConfig(), axis="encoding")
+            seconds.append(time.perf_counter() - start)
+            found.append(SceneCaps(fit.centers, fit.rotations, fit.scales, fit.scores))
+        rows.append(_row(encoding, found, seconds, truth))
+    return rows
+
+
 def our_rows(model, scenes, truth: list[SceneCaps], progress: bool = False) -> list[Row]:
     """Tables 3 and 4: ours with DBSCAN and MeanShift, and MeanShift's caps refined by ICP."""
     from tqdm import tqdm
@@ -121,6 +149,15 @@ def format_tables(name: str, rows: dict[int, list[Row]]) -> str:
             out.append(f"| {row.method} / {paper_name} | {_percent(paper)} | {_percent(row.result.ap25)} | "
                        f"{_percent(row.result.ap50)} | {row.ms_per_bed:.0f} |")
         out.append("")
+    if 2 in rows:
+        out += [f"Table 2 ({name}): implicit against explicit encodings (networks of one recipe, seed and budget)",
+                "", "| predictions (paper's) | AP@25 paper | AP@25 ours | AP@50 ours | angle (deg) ours | ms per bed |",
+                "|---|---|---|---|---|---|"]
+        for row in rows[2]:
+            paper_name, paper = PAPER_ENCODINGS[row.method]
+            out.append(f"| {row.method} ({paper_name}) | {_percent(paper)} | {_percent(row.result.ap25)} | "
+                       f"{_percent(row.result.ap50)} | {_number(row.result.angle_deg, '{:.2f}')} | {row.ms_per_bed:.0f} |")
+        out.append("")
     if 3 in rows:
         out += [f"Table 3 ({name}): clustering", "",
                 "| clustering | AP@25 paper | AP@25 ours | AP@50 paper | AP@50 ours | ms per bed |", "|---|---|---|---|---|---|"]
@@ -151,13 +188,19 @@ def best_ransac(rows: dict[int, list[Row]]) -> Row | None:
     return max(rows.get(1, []), key=lambda row: row.result.ap25, default=None)
 
 
-def run_tables(model, scenes, tables: tuple[int, ...], progress: bool = False) -> dict[int, list[Row]]:
-    """The rows of the chosen tables (4 needs 1's best row: it runs 1 as well)."""
+def run_tables(model, scenes, tables: tuple[int, ...], progress: bool = False,
+               encoding_models: dict | None = None) -> dict[int, list[Row]]:
+    """The rows of the chosen tables (4 needs 1's best row: it runs 1 as well; 2 needs
+    ``encoding_models``, a network per encoding of ``ENCODING_RUNS``)."""
     unknown = sorted(set(tables) - set(TABLES))
     if unknown:
         raise ValueError(f"table {unknown[0]} is not available; choose from {', '.join(map(str, TABLES))}")
     truth = ground_truth(scenes)
     rows: dict[int, list[Row]] = {}
+    if 2 in tables:
+        if not encoding_models:
+            raise ValueError("table 2 needs the three encodings' networks (ENCODING_RUNS)")
+        rows[2] = encoding_rows(encoding_models, scenes, truth, progress)
     if 1 in tables or 4 in tables:
         rows[1] = ransac_rows(model, scenes, truth, progress)
     if 3 in tables or 4 in tables:

@@ -148,6 +148,8 @@ def fit_caps(points: np.ndarray, predicted_centers: np.ndarray, orientation: np.
     p, y = clusters.take(points), clusters.take(orientation)
     sums = clusters.sums(np.vstack([clusters.take(predicted_centers), clusters.take(existence)]))
     centers, scores = sums[:, :3] / counts[:, None], sums[:, 3] / counts
+    if np.ndim(orientation) == 2:
+        return _fit_explicit_axes(clusters, p, centers, scores, orientation, height)
     d = p - clusters.spread(centers)
     rows = np.vstack([d, y])
     moments = clusters.sums(np.vstack([rows[_PAIRS[0]] * rows[_PAIRS[1]], rows]))
@@ -171,6 +173,20 @@ def fit_caps(points: np.ndarray, predicted_centers: np.ndarray, orientation: np.
         cap_axis = refine_axes(p, y, clusters.lab, centers, rotations, scales)
         rotations, scales = _orient_and_size(d, clusters, cap_axis, height)
     return CapFit(centers, rotations, scales, scores, counts)
+
+
+def _fit_explicit_axes(clusters: _Clusters, p: np.ndarray, centers: np.ndarray, scores: np.ndarray,
+                       vectors: np.ndarray, height: str) -> CapFit:
+    """Caps from the explicit-orientation ablation (the paper's Table 2): every cap voxel predicts its
+    cap's axis; a cap's axis is the mean of its voxels' unit vectors, its centre the mean predicted
+    centre, its size as for the implicit encoding (no intercept, no surface refinement)."""
+    v = clusters.take(vectors)
+    v = v / np.maximum(np.linalg.norm(v, axis=0), 1e-12)
+    mean = clusters.sums(v)
+    norm = np.linalg.norm(mean, axis=1)
+    cap_axis = np.where(norm[:, None] > 1e-12, mean / np.maximum(norm, 1e-12)[:, None], [0.0, 0.0, 1.0])
+    rotations, scales = _orient_and_size(p - clusters.spread(centers), clusters, cap_axis, height)
+    return CapFit(centers, rotations, scales, scores, clusters.counts)
 
 
 def _orient_and_size(d: np.ndarray, clusters: _Clusters, cap_axis: np.ndarray,
@@ -207,23 +223,8 @@ def refine_axes(points: np.ndarray, orientation: np.ndarray, lab: np.ndarray, ce
     """
     k = len(centers)
     counts = np.bincount(lab, minlength=k)
-    # clusters as zero-padded rows, (K, component, width): every step is a batched array operation
-    # whose innermost loop runs along a cluster's points. A larger cluster gives an even subset: its
-    # points ceil(j n / m), j < m.
-    kept = np.minimum(counts, SURFACE_MAX_POINTS) if SURFACE_MAX_POINTS else counts
-    subset_lab = np.repeat(np.arange(k), kept)
-    slot = np.arange(len(subset_lab)) - np.repeat(np.cumsum(kept) - kept, kept)
-    n, m = counts[subset_lab], kept[subset_lab]
-    chosen = np.repeat(np.cumsum(counts) - counts, kept) + (slot * n + m - 1) // m
-    points, orientation, lab = points[:, chosen], orientation[chosen], subset_lab
-    width = int(kept.max())
-    cell = lab * width + slot
-    real = np.zeros((k, width))
-    real.reshape(-1)[cell] = 1.0
-    values = np.zeros((k, width))
-    values.reshape(-1)[cell] = orientation
-    padded_points = np.zeros((k, 3, width))
-    padded_points.reshape(-1)[cell + 2 * width * lab + width * np.arange(3)[:, None]] = points
+    padded_points, values, real, cell = _padded_clusters(points, orientation, lab, counts)
+    width = real.shape[1]
     center, rotation = centers.copy(), rotations.copy()
     log_axes = np.log(np.maximum(scales, 1e-6))
     # the Jacobian's nine rows and, last, the residuals: one batched product gives J J^T and J r
@@ -278,6 +279,34 @@ def refine_axes(points: np.ndarray, orientation: np.ndarray, lab: np.ndarray, ce
     keep = (counts >= SURFACE_MIN_POINTS) & np.isfinite(refined).all(1) & plausible
     return np.where(keep[:, None], refined, rotations[:, :, 2])
 
+
+
+def _padded_clusters(points: np.ndarray, orientation: np.ndarray, lab: np.ndarray,
+                     counts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The clusters' points (3, n) and orientation values (n,), in cluster order, as zero-padded rows:
+    points (K, 3, width), values (K, width), 1 where a row holds a point (K, width), and each kept
+    point's index in the flattened (K, width) rows.
+
+    Every step of the surface fit is then a batched array operation whose innermost loop runs along a
+    cluster's points. A cluster of n points over ``SURFACE_MAX_POINTS`` = m keeps an even subset: its
+    points ceil(j n / m), j < m.
+    """
+    k = len(counts)
+    kept = np.minimum(counts, SURFACE_MAX_POINTS) if SURFACE_MAX_POINTS else counts
+    subset_lab = np.repeat(np.arange(k), kept)
+    slot = np.arange(len(subset_lab)) - np.repeat(np.cumsum(kept) - kept, kept)
+    n, m = counts[subset_lab], kept[subset_lab]
+    chosen = np.repeat(np.cumsum(counts) - counts, kept) + (slot * n + m - 1) // m
+    points, orientation, lab = points[:, chosen], orientation[chosen], subset_lab
+    width = int(kept.max())
+    cell = lab * width + slot
+    real = np.zeros((k, width))
+    real.reshape(-1)[cell] = 1.0
+    values = np.zeros((k, width))
+    values.reshape(-1)[cell] = orientation
+    padded_points = np.zeros((k, 3, width))
+    padded_points.reshape(-1)[cell + 2 * width * lab + width * np.arange(3)[:, None]] = points
+    return padded_points, values, real, cell
 
 def _fit_two_axes(a11: np.ndarray, a12: np.ndarray, a22: np.ndarray, b1: np.ndarray, b2: np.ndarray,
                   fallback: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -11,7 +11,6 @@ from __future__ import annotations
 import csv
 import json
 import multiprocessing as mp
-import os
 import queue as queues
 import time
 from dataclasses import asdict, dataclass, field
@@ -24,6 +23,7 @@ import torch.nn.functional as F
 from torch.optim.swa_utils import AveragedModel
 from tqdm import tqdm
 
+from common.files import atomic_path
 from perception.cap import cap_rotation
 from perception.encoding import encode
 from perception.model import (INFERENCE_ZOOM, LENGTH_UNIT, PRESETS as NETWORK_PRESETS, MushroomNet,
@@ -34,16 +34,23 @@ from perception.synthetic.scene import SceneConfig, generate_scene
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """The paper's recipe (Sec. 4) with our augmentations; every field is a CLI flag."""
+    """The paper's recipe (Sec. 4) with our augmentations; every field is a ``mushroom-pose train`` flag
+    (``scene`` by its voxel, scale and jitter)."""
 
     iterations: int = 20000
+    """Training steps, each on a fresh synthetic bed (the paper's 20000)."""
     lr: float = 1e-3
+    """Adam's learning rate."""
     milestones: tuple[float, ...] = (0.6, 0.85)
     """Fractions of ``iterations`` where the learning rate drops by ``gamma``."""
     gamma: float = 0.1
+    """Factor on the learning rate at each of ``milestones``."""
     weight_existence: float = 1.0
+    """Weight of the existence loss (the paper's 1)."""
     weight_residual: float = 100.0
+    """Weight of the residual-centre loss (the paper's 100)."""
     weight_orientation: float = 1.0
+    """Weight of the orientation loss (the paper's 1)."""
     orientation_on_caps: bool = False
     """Average the orientation MSE over cap voxels only (the paper's loss averages over every voxel,
     most of them soil with target 0, so the term that sets cap tilt is the weakest of the three)."""
@@ -56,25 +63,39 @@ class TrainConfig:
     the batch-norm statistics alike): stochastic weight averaging (Izmailov et al. 2018). The run's
     model.pt is then the mean, and validation reads it."""
     init_weights: str | None = None
-    """Start from these weights (a model.pt) instead of random ones: fine-tuning with a new loss."""
+    """Start from these weights (a model.pt) instead of random ones: fine-tuning with a new loss. The
+    run is read at ``zoom``, not at its start's zoom."""
     zoom: float | None = None
     """The zoom the model is read at (``MushroomNet.inference_zoom``): its weights record it and
     validation reads at it. It belongs with ``scale_jitter``: a network trained on beds scaled by
     1.05-1.35 is read at 1.2. None: ``INFERENCE_ZOOM``, for the default jitter."""
-    network: str = "slim"
+    network: str = "slim-no"
+    """Network preset (perception.model.PRESETS): slim-no, the shipped model's (slim U-Net fed normals
+    and each centroid's place in its voxel); slim-n (normals only); slim (occupancy only, as the paper);
+    wide-no (slim-no with wider coarse levels); slim-no-k5 (slim-no with a 5^3 first convolution);
+    lean-no (slim-no with 32 channels in the full-resolution up block); fcgf (the paper's full backbone)."""
     seed: int = 0
+    """Run seed: iteration i trains on the bed and augmentation drawn from seed (run seed, i)."""
     checkpoint_every: int = 200
+    """Iterations between checkpoints, which a resumed run continues from."""
     validate_every: int = 1000
+    """Iterations between validations."""
     validation_scenes: int = 5
+    """val50 scenes scored at each validation (0: none)."""
     queue_size: int = 6
+    """Generated beds that may wait for the network (the generator runs in a process of its own)."""
     rotate_z: bool = True
+    """Turn each bed by a random angle about the vertical."""
     scale_jitter: tuple[float, float] = (0.9, 1.1)
+    """Scale each bed by a factor drawn from [low, high] (the shipped model was fine-tuned at 1.05 1.35)."""
     point_dropout: tuple[float, float] = (0.0, 0.2)
+    """Drop a fraction of each bed's points, drawn from [low, high]."""
     tilt_deg: float = 3.0
     """Random tilt of the whole bed, as left by an imperfect bed-plane estimate."""
     noise: float = 0.0005
     """Standard deviation (metres) of Gaussian jitter on the points."""
     scene: SceneConfig = field(default_factory=SceneConfig)
+    """The synthetic beds trained on."""
 
     @property
     def averaging_start(self) -> int | None:
@@ -111,9 +132,10 @@ def augmented_sample(config: TrainConfig, iteration: int) -> dict[str, np.ndarra
     centers = scale * scene.centers @ rotation.T
     rotations = rotation @ scene.rotations
     targets = encode(points, scene.instance[keep], scene.is_cap[keep], centers, rotations, scale * scene.scales)
+    instance = np.where(targets.existence > 0, scene.instance[keep], -1).astype(np.int64)
     return {"iteration": iteration, "points": points.astype(np.float32), "existence": targets.existence,
-            "residual": targets.residual, "orientation": targets.orientation,
-            "instance": np.where(targets.existence > 0, scene.instance[keep], -1).astype(np.int64)}
+            "residual": targets.residual, "orientation": targets.orientation, "instance": instance,
+            "axis": np.where(instance[:, None] >= 0, rotations[np.maximum(instance, 0), :, 2], 0.0).astype(np.float32)}
 
 
 def _differences(saved: dict, asked: dict, prefix: str = "") -> str:
@@ -189,8 +211,11 @@ def _producer(config: TrainConfig, network: NetworkConfig, start: int, stop: int
     """Worker process: scenes, targets and network input for iterations ``start`` to ``stop``, in order."""
     torch.set_num_threads(1)
     for iteration in range(start, stop):
-        coords, existence, residual, orientation, centroids, cap_weight = voxel_targets(
-            augmented_sample(config, iteration), network.voxel)
+        sample = augmented_sample(config, iteration)
+        coords, existence, residual, orientation, centroids, cap_weight = voxel_targets(sample, network.voxel)
+        if network.encoding != "implicit":
+            residual, orientation = explicit_targets(network.encoding, sample, network.voxel, existence, residual,
+                                                     orientation, centroids)
         queue.put({"iteration": iteration, "coords": coords.numpy(), "features": voxel_features(network, centroids),
                    "existence": existence.numpy(), "residual": residual.numpy(), "orientation": orientation.numpy(),
                    "cap_weight": cap_weight.numpy()})
@@ -228,6 +253,23 @@ def voxel_targets(sample: dict, voxel: float):
             centroids.numpy(), cap_weight)
 
 
+def explicit_targets(encoding: str, sample: dict, voxel: float, existence: torch.Tensor, residual: torch.Tensor,
+                     orientation: torch.Tensor, centroids: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    """The targets of the paper's Table 2 ablations from the implicit ones: ``explicit-centre`` gives
+    cap voxels their cap's centre (LENGTH_UNITs, bed frame) in place of the residual to it;
+    ``explicit-orientation`` gives them their cap's unit axis (V, 3) in place of the orientation value."""
+    from perception.detect import network_input
+
+    on_cap = existence[:, None] > 0
+    if encoding == "explicit-centre":
+        centre = residual + torch.from_numpy(centroids).float() / LENGTH_UNIT
+        return torch.where(on_cap, centre, torch.zeros(1)), orientation
+    _, point_to_voxel, _ = network_input(sample["points"], voxel)
+    axis = torch.zeros(len(existence), 3).index_add_(0, point_to_voxel, torch.from_numpy(sample["axis"]).float())
+    axis = axis / axis.norm(dim=1, keepdim=True).clamp(min=1e-9)
+    return residual, torch.where(on_cap, axis, torch.zeros(1))
+
+
 def loss_terms(output: torch.Tensor, existence: torch.Tensor, residual: torch.Tensor, orientation: torch.Tensor,
                config: TrainConfig, cap_weight: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """The paper's multi-task loss: BCE on existence, MSE on residual centre and orientation. Cap voxels
@@ -240,24 +282,27 @@ def loss_terms(output: torch.Tensor, existence: torch.Tensor, residual: torch.Te
         cap_weight = on_cap.to(output.dtype)
     voxel_weight = torch.where(on_cap, cap_weight, torch.ones_like(cap_weight))
     bce = F.binary_cross_entropy_with_logits(output[:, 0], existence, reduction="none")
+    predicted = output[:, 4] if orientation.dim() == 1 else output[:, 4:]  # a value, or an axis (explicit)
     terms = {"existence": (voxel_weight * bce).mean(),
              "residual": F.mse_loss(output[:, 1:4], residual),
-             "orientation": (_weighted_mse(output[:, 4], orientation, cap_weight)
+             "orientation": (_weighted_mse(predicted, orientation, cap_weight)
                              if config.orientation_on_caps or config.cap_balance
-                             else F.mse_loss(output[:, 4], orientation))}
+                             else F.mse_loss(predicted, orientation))}
     terms["total"] = (config.weight_existence * terms["existence"] + config.weight_residual * terms["residual"]
                       + config.weight_orientation * terms["orientation"])
     return terms
 
 
 def _weighted_mse(prediction: torch.Tensor, target: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
-    return (weight * (prediction - target) ** 2).sum() / weight.sum().clamp(min=1.0)
+    squared = (prediction - target) ** 2
+    if squared.dim() > 1:
+        squared = squared.sum(1)
+    return (weight * squared).sum() / weight.sum().clamp(min=1.0)
 
 
 def _atomic_save(payload: dict, path: Path) -> None:
-    tmp = path.with_name(path.name + ".partial")
-    torch.save(payload, tmp)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        torch.save(payload, tmp)
 
 
 def validate(model: MushroomNet, scenes) -> dict[str, float]:
@@ -269,175 +314,232 @@ def validate(model: MushroomNet, scenes) -> dict[str, float]:
     return metrics
 
 
+LOSS_TERMS = ("total", "existence", "residual", "orientation")
+VALIDATION_METRICS = ("ap25", "ap50", "angle_deg", "scale_err")
+HISTORY_COLUMNS = ("iteration", "lr", *LOSS_TERMS, "seconds", *(f"val_{name}" for name in VALIDATION_METRICS))
+"""history.csv: one row per iteration; the validation columns are empty between validations."""
+
+
 def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str | None = None,
           progress: bool = True, rerun: bool = True, stop_at: int | None = None,
           max_minutes: float | None = None) -> Path | None:
     """Train (or continue training) into ``run_dir``; returns the final weights, or None when the run
     stopped early (at iteration ``stop_at`` or after ``max_minutes``) with a checkpoint to resume."""
-    device = _resolve_device(device)
-    checkpoint_path = run_dir / "checkpoint.pt"
-    if resume and not checkpoint_path.is_file():
-        raise ValueError(f"no checkpoint to resume in {run_dir}: check --out, or drop --resume to start a new run")
-    run_dir.mkdir(parents=True, exist_ok=True)
-    network_config = NETWORK_PRESETS[config.network]
-    torch.manual_seed(config.seed)
-    model = MushroomNet(network_config, point_spacing=config.scene.voxel,
-                        inference_zoom=INFERENCE_ZOOM if config.zoom is None else config.zoom).to(device)
-    init = None
-    if config.init_weights and not resume:
-        initial, base = load_weights(Path(config.init_weights), device)
-        if initial.config != network_config:
-            raise ValueError(f"{config.init_weights} holds a different network than {config.network!r}; "
+    run = TrainingRun(config, run_dir, _resolve_device(device), resume)
+    end = config.iterations if stop_at is None else min(stop_at, config.iterations)
+    reached = run.iterate(end, progress=progress, rerun=rerun, max_minutes=max_minutes)
+    return run.export() if reached == config.iterations else None
+
+
+class TrainingRun:
+    """The training in a run folder: model, optimiser, learning-rate schedule and the weights' running
+    mean, set up afresh (random or ``config.init_weights``) or resumed from the folder's checkpoint.
+    ``iterate`` trains and checkpoints, ``export`` writes model.pt from the last checkpoint."""
+
+    def __init__(self, config: TrainConfig, run_dir: Path, device: str, resume: bool) -> None:
+        self.config, self.run_dir, self.device = config, run_dir, device
+        self.checkpoint_path = run_dir / "checkpoint.pt"
+        if resume and not self.checkpoint_path.is_file():
+            raise ValueError(f"no checkpoint to resume in {run_dir}: check --out, or drop --resume to start a new run")
+        run_dir.mkdir(parents=True, exist_ok=True)
+        self.network_config = NETWORK_PRESETS[config.network]
+        torch.manual_seed(config.seed)
+        self.model = MushroomNet(self.network_config, point_spacing=config.scene.voxel,
+                                 inference_zoom=INFERENCE_ZOOM if config.zoom is None else config.zoom).to(device)
+        self.init = self._load_init_weights() if config.init_weights and not resume else None
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr)
+        milestones = [int(f * config.iterations) for f in config.milestones]
+        self.scheduler = torch.optim.lr_scheduler.MultiStepLR(self.optimizer, milestones, config.gamma)
+        self.averaged = AveragedModel(self.model, use_buffers=True) if config.average_from is not None else None
+        self.start, self.elapsed_before, self.saved_at = 0, 0.0, None
+        if resume:
+            self._resume()
+        else:
+            (run_dir / "history.csv").unlink(missing_ok=True)
+        (run_dir / "train_config.json").write_text(json.dumps(config.to_dict(), indent=1))
+        self.session_start = time.perf_counter()
+
+    def _load_init_weights(self) -> dict:
+        """Put ``config.init_weights`` into the model; returns their provenance."""
+        path = Path(self.config.init_weights)
+        initial, meta = load_weights(path, self.device)
+        if initial.config != self.network_config:
+            raise ValueError(f"{self.config.init_weights} holds a different network than {self.config.network!r}; "
                              "pass the --network it was trained with")
-        model.load_state_dict(initial.state_dict())
-        init = _provenance(Path(config.init_weights), base)
-    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
-    milestones = [int(f * config.iterations) for f in config.milestones]
-    scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, milestones, config.gamma)
-    averaged = AveragedModel(model, use_buffers=True) if config.average_from is not None else None
-    start, elapsed_before = 0, 0.0
-    if resume:
-        state = _load_checkpoint(checkpoint_path, device)
+        self.model.load_state_dict(initial.state_dict())
+        return _provenance(path, meta)
+
+    def _resume(self) -> None:
+        """Model, optimiser, schedule, weights' mean and torch RNG as the checkpoint left them."""
+        state = _load_checkpoint(self.checkpoint_path, self.device)
         # a checkpoint without a field ran with its default
-        differ = _differences({**TrainConfig().to_dict(), **state["train_config"]}, config.to_dict())
+        differ = _differences({**TrainConfig().to_dict(), **state["train_config"]}, self.config.to_dict())
         if differ:
-            raise ValueError(f"{checkpoint_path} was made with a different configuration ({differ}); "
+            raise ValueError(f"{self.checkpoint_path} was made with a different configuration ({differ}); "
                              "resume with the same flags or use a new run folder")
-        model.load_state_dict(state["model"])
-        model.inference_zoom = state.get("inference_zoom", UNRECORDED_ZOOM)
-        if averaged is not None:
-            averaged.module.inference_zoom = model.inference_zoom
-        optimizer.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
+        self.model.load_state_dict(state["model"])
+        self.model.inference_zoom = state.get("inference_zoom", UNRECORDED_ZOOM)
+        if self.averaged is not None:
+            self.averaged.module.inference_zoom = self.model.inference_zoom
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
         torch.set_rng_state(state["torch_rng"])
-        if averaged is not None:
-            averaged.load_state_dict(state["average"])
-        start, elapsed_before = state["iteration"], state["elapsed_s"]
-        init = state.get("init")
-    else:
-        (run_dir / "history.csv").unlink(missing_ok=True)
-    (run_dir / "train_config.json").write_text(json.dumps(config.to_dict(), indent=1))
+        if self.averaged is not None:
+            self.averaged.load_state_dict(state["average"])
+        self.start, self.elapsed_before, self.saved_at = state["iteration"], state["elapsed_s"], state["iteration"]
+        self.init = state.get("init")
 
-    validation = None
-    if config.validation_scenes > 0:
-        from perception.synthetic.dataset import load_preset
-        validation = load_preset("val50", progress=False, limit=config.validation_scenes,
-                                 spacing=config.scene.voxel)
+    def iterate(self, end: int, progress: bool, rerun: bool, max_minutes: float | None) -> int:
+        """Train up to iteration ``end``, or until ``max_minutes`` have passed, with a row of history.csv
+        per iteration, validations and checkpoints on the way and a checkpoint where it stops; returns
+        the iteration reached."""
+        validation = _validation_scenes(self.config)
+        rec = self._rerun_stream() if rerun else None
+        producer, samples = self._start_scene_generator()
+        history = open(self.run_dir / "history.csv", "a", newline="")
+        writer = csv.writer(history)
+        if self.start == 0:
+            writer.writerow(HISTORY_COLUMNS)
+        self.model.train()
+        bar = tqdm(total=self.config.iterations, initial=self.start, desc="train", unit="it", disable=not progress,
+                   dynamic_ncols=True)
+        self.session_start = time.perf_counter()
+        deadline = None if max_minutes is None else self.session_start + 60 * max_minutes
+        try:
+            for iteration in range(self.start, end):
+                if deadline is not None and time.perf_counter() > deadline:
+                    end = iteration
+                    break
+                losses = self._step(_next_sample(samples, producer, iteration), iteration)
+                row = [iteration + 1, self.scheduler.get_last_lr()[0], *(losses[name] for name in LOSS_TERMS),
+                       round(self._elapsed(), 1)]
+                _log_losses(rec, iteration + 1, losses)
+                metrics = {}
+                if validation is not None and (iteration + 1) % self.config.validate_every == 0:
+                    metrics = self._validate(iteration + 1, validation, rec)
+                writer.writerow(row + [metrics.get(name, "") for name in VALIDATION_METRICS])
+                _show_losses(bar, losses)
+                if (iteration + 1) % self.config.checkpoint_every == 0:
+                    history.flush()
+                    self.save_checkpoint(iteration + 1)
+            self.save_checkpoint(end)
+        finally:
+            bar.close()
+            history.close()
+            producer.terminate()
+            if rec is not None:
+                rec.flush()
+        return end
 
-    rec = None
-    if rerun:
+    def _rerun_stream(self) -> rr.RecordingStream:
+        """The losses and validation metrics of this session, saved beside the checkpoint."""
         rec = rr.RecordingStream("mushroom-pose-train")
-        rec.save(run_dir / f"train_from_{start:06d}.rrd")
+        rec.save(self.run_dir / f"train_from_{self.start:06d}.rrd")
+        return rec
 
-    context = mp.get_context("fork")
-    queue = context.Queue(maxsize=config.queue_size)
-    producer = context.Process(target=_producer, args=(config, network_config, start, config.iterations, queue),
-                               daemon=True)
-    producer.start()
-    history = open(run_dir / "history.csv", "a", newline="")
-    writer = csv.writer(history)
-    if start == 0:
-        writer.writerow(["iteration", "lr", "total", "existence", "residual", "orientation", "seconds",
-                         "val_ap25", "val_ap50", "val_angle_deg", "val_scale_err"])
-    model.train()
-    bar = tqdm(total=config.iterations, initial=start, desc="train", unit="it", disable=not progress,
-               dynamic_ncols=True)
-    session_start = time.perf_counter()
+    def _start_scene_generator(self) -> tuple[mp.Process, mp.Queue]:
+        """A worker process that fills a bounded queue with the samples of the iterations to come."""
+        context = mp.get_context("fork")
+        samples = context.Queue(maxsize=self.config.queue_size)
+        producer = context.Process(target=_producer, daemon=True,
+                                   args=(self.config, self.network_config, self.start, self.config.iterations, samples))
+        producer.start()
+        return producer, samples
 
-    saved_at = start if resume else None
+    def _step(self, sample: dict, iteration: int) -> dict[str, float]:
+        """One optimiser step on iteration ``iteration``'s sample; returns the loss terms."""
+        assert sample["iteration"] == iteration
+        tensors = {k: torch.from_numpy(v).to(self.device) for k, v in sample.items() if k != "iteration"}
+        output = self.model(SparseTensor(tensors["features"], tensors["coords"]))
+        terms = loss_terms(output, tensors["existence"], tensors["residual"], tensors["orientation"], self.config,
+                           tensors["cap_weight"])
+        if not torch.isfinite(terms["total"]):
+            raise TrainingError(f"the loss is no longer finite at iteration {iteration + 1}; {self._diverged()}")
+        self.optimizer.zero_grad(set_to_none=True)
+        terms["total"].backward()
+        self.optimizer.step()
+        self.scheduler.step()
+        if self.averaged is not None and iteration + 1 > self.config.averaging_start:
+            self.averaged.update_parameters(self.model)
+        return {k: v.item() for k, v in terms.items()}
 
-    def shipped_model() -> MushroomNet:
+    def _validate(self, iteration: int, scenes, rec: rr.RecordingStream | None) -> dict[str, float]:
+        """The validation metrics of the model model.pt would hold now, printed and logged to Rerun."""
+        metrics = validate(self.shipped_model(), scenes)
+        tqdm.write(f"iteration {iteration}: val AP@25 {metrics['ap25']:.3f}  AP@50 {metrics['ap50']:.3f}  "
+                   f"angle {metrics['angle_deg']:.2f} deg  scale err {metrics['scale_err']:.3f}")
+        if rec is not None:
+            for name in VALIDATION_METRICS:
+                rec.log(f"stats/val/{name}", rr.Scalars(metrics[name]))
+        return metrics
+
+    def shipped_model(self) -> MushroomNet:
         """What model.pt will hold: the weights' running mean once it has begun."""
-        return averaged.module if averaged is not None and averaged.n_averaged > 0 else model
+        return self.averaged.module if self.averaged is not None and self.averaged.n_averaged > 0 else self.model
 
-    def save(iteration: int) -> None:
-        nonlocal saved_at
-        if not _all_finite(model):
-            raise TrainingError(f"the weights are no longer finite at iteration {iteration}; {diverged()}")
-        _atomic_save({"model": model.state_dict(), "optimizer": optimizer.state_dict(),
-                      "scheduler": scheduler.state_dict(), "torch_rng": torch.get_rng_state(),
-                      "iteration": iteration, "elapsed_s": elapsed_before + time.perf_counter() - session_start,
-                      "train_config": config.to_dict(), "network": network_config.to_dict(), "init": init,
-                      "inference_zoom": model.inference_zoom,
-                      "average": None if averaged is None else averaged.state_dict()},
-                     checkpoint_path)
-        saved_at = iteration
+    def save_checkpoint(self, iteration: int) -> None:
+        """Everything a resumed run needs to go on exactly as this one would, written atomically."""
+        if not _all_finite(self.model):
+            raise TrainingError(f"the weights are no longer finite at iteration {iteration}; {self._diverged()}")
+        _atomic_save({"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
+                      "scheduler": self.scheduler.state_dict(), "torch_rng": torch.get_rng_state(),
+                      "iteration": iteration, "elapsed_s": self._elapsed(), "train_config": self.config.to_dict(),
+                      "network": self.network_config.to_dict(), "init": self.init,
+                      "inference_zoom": self.model.inference_zoom,
+                      "average": None if self.averaged is None else self.averaged.state_dict()},
+                     self.checkpoint_path)
+        self.saved_at = iteration
 
-    def diverged() -> str:
-        kept = f"the checkpoint in {run_dir} is from iteration {saved_at}" if saved_at is not None else \
-            "no checkpoint was kept"
+    def export(self) -> Path:
+        """model.pt from the last checkpoint: its weights (their mean, with averaging) and the training
+        cost behind them, a fine-tuned model's including the run it started from."""
+        state = torch.load(self.checkpoint_path, map_location="cpu", weights_only=False)
+        self.model.load_state_dict(state["model"])
+        if self.averaged is not None:
+            self.averaged.load_state_dict(state["average"])
+            self.model.load_state_dict(self.shipped_model().state_dict())
+        meta = {"train_config": state["train_config"], "iterations": state["iteration"],
+                "train_seconds": state["elapsed_s"], "total_iterations": state["iteration"],
+                "total_train_seconds": state["elapsed_s"]}
+        if state.get("init"):
+            meta["init"] = state["init"]
+            meta["total_iterations"] += state["init"]["total_iterations"]
+            meta["total_train_seconds"] += state["init"]["total_train_seconds"]
+        weights = self.run_dir / "model.pt"
+        save_weights(self.model, weights, **meta)
+        return weights
+
+    def _elapsed(self) -> float:
+        """Training seconds of the run so far, earlier sessions included."""
+        return self.elapsed_before + time.perf_counter() - self.session_start
+
+    def _diverged(self) -> str:
+        """What to do about a diverged run, and which checkpoint it kept."""
+        kept = f"the checkpoint in {self.run_dir} is from iteration {self.saved_at}" if self.saved_at is not None \
+            else "no checkpoint was kept"
         return f"start a new run with a smaller learning rate or loss weights ({kept})"
 
-    end = config.iterations if stop_at is None else min(stop_at, config.iterations)
-    deadline = None if max_minutes is None else session_start + 60 * max_minutes
-    try:
-        for iteration in range(start, end):
-            if deadline is not None and time.perf_counter() > deadline:
-                end = iteration
-                break
-            sample = _next_sample(queue, producer, iteration)
-            assert sample["iteration"] == iteration
-            tensors = {k: torch.from_numpy(v).to(device) for k, v in sample.items() if k != "iteration"}
-            output = model(SparseTensor(tensors["features"], tensors["coords"]))
-            terms = loss_terms(output, tensors["existence"], tensors["residual"], tensors["orientation"], config,
-                               tensors["cap_weight"])
-            if not torch.isfinite(terms["total"]):
-                raise TrainingError(f"the loss is no longer finite at iteration {iteration + 1}; {diverged()}")
-            optimizer.zero_grad(set_to_none=True)
-            terms["total"].backward()
-            optimizer.step()
-            scheduler.step()
-            if averaged is not None and iteration + 1 > config.averaging_start:
-                averaged.update_parameters(model)
-            values = {k: v.item() for k, v in terms.items()}
-            row = [iteration + 1, scheduler.get_last_lr()[0], values["total"], values["existence"],
-                   values["residual"], values["orientation"],
-                   round(elapsed_before + time.perf_counter() - session_start, 1)]
-            if rec is not None:
-                rec.set_time("iteration", sequence=iteration + 1)
-                for name, value in values.items():
-                    rec.log(f"stats/loss/{name}", rr.Scalars(value))
-            metrics = {}
-            if validation is not None and (iteration + 1) % config.validate_every == 0:
-                metrics = validate(shipped_model(), validation)
-                tqdm.write(f"iteration {iteration + 1}: val AP@25 {metrics['ap25']:.3f}  AP@50 {metrics['ap50']:.3f}  "
-                           f"angle {metrics['angle_deg']:.2f} deg  scale err {metrics['scale_err']:.3f}")
-                if rec is not None:
-                    for name in ("ap25", "ap50", "angle_deg", "scale_err"):
-                        rec.log(f"stats/val/{name}", rr.Scalars(metrics[name]))
-            writer.writerow(row + [metrics.get("ap25", ""), metrics.get("ap50", ""), metrics.get("angle_deg", ""),
-                                   metrics.get("scale_err", "")])
-            bar.set_postfix(loss=f"{values['total']:.3f}", ex=f"{values['existence']:.3f}",
-                            res=f"{values['residual']:.4f}", ori=f"{values['orientation']:.4f}", refresh=False)
-            bar.update(1)
-            if (iteration + 1) % config.checkpoint_every == 0:
-                history.flush()
-                save(iteration + 1)
-        save(end)
-    finally:
-        bar.close()
-        history.close()
-        producer.terminate()
-        if rec is not None:
-            rec.flush()
-    if end < config.iterations:
+
+def _validation_scenes(config: TrainConfig):
+    """The first ``config.validation_scenes`` val50 scenes at the training spacing (None: no validation)."""
+    if config.validation_scenes <= 0:
         return None
-    weights = run_dir / "model.pt"
-    state = torch.load(checkpoint_path, map_location="cpu", weights_only=False)
-    model.load_state_dict(state["model"])
-    if averaged is not None:
-        averaged.load_state_dict(state["average"])
-        model.load_state_dict(shipped_model().state_dict())
-    meta = {"train_config": state["train_config"], "iterations": state["iteration"],
-            "train_seconds": state["elapsed_s"], "total_iterations": state["iteration"],
-            "total_train_seconds": state["elapsed_s"]}
-    if state.get("init"):
-        # a fine-tuned model's cost includes the run it started from
-        meta["init"] = state["init"]
-        meta["total_iterations"] += state["init"]["total_iterations"]
-        meta["total_train_seconds"] += state["init"]["total_train_seconds"]
-    save_weights(model, weights, **meta)
-    return weights
+    from perception.synthetic.dataset import load_preset
+
+    return load_preset("val50", progress=False, limit=config.validation_scenes, spacing=config.scene.voxel)
+
+
+def _log_losses(rec: rr.RecordingStream | None, iteration: int, losses: dict[str, float]) -> None:
+    if rec is not None:
+        rec.set_time("iteration", sequence=iteration)
+        for name, value in losses.items():
+            rec.log(f"stats/loss/{name}", rr.Scalars(value))
+
+
+def _show_losses(bar: tqdm, losses: dict[str, float]) -> None:
+    bar.set_postfix(loss=f"{losses['total']:.3f}", ex=f"{losses['existence']:.3f}", res=f"{losses['residual']:.4f}",
+                    ori=f"{losses['orientation']:.4f}", refresh=False)
+    bar.update(1)
 
 
 def _provenance(path: Path, meta: dict) -> dict:

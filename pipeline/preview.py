@@ -6,8 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.frames import CameraIntrinsics, look_at
+from capture.frames import CameraIntrinsics
 from capture.virtual import MeshScene
+from common.files import atomic_path
+from common.geometry import look_at
 from perception.synthetic.scene import SceneConfig, build_bed
 
 
@@ -27,6 +29,5 @@ def render_bed_preview(seed: int, config: SceneConfig, path: Path, width: int = 
     colour[bed.triangle_is_cap[triangle]] = [0.97, 0.95, 0.90]
     shade = 0.3 + 0.7 * render.cos_incidence[..., None]
     image = np.where(hit[..., None], colour * shade, 0.08)
-    tmp = Path(path).with_name(Path(path).stem + ".partial.png")
-    o3d.io.write_image(str(tmp), o3d.geometry.Image(np.ascontiguousarray((255 * image).astype(np.uint8))))
-    tmp.replace(path)
+    with atomic_path(path, keep_suffix=True) as tmp:
+        o3d.io.write_image(str(tmp), o3d.geometry.Image(np.ascontiguousarray((255 * image).astype(np.uint8))))

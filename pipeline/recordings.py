@@ -57,7 +57,7 @@ RECORDINGS = (
 
 def fixed_camera_poses(cameras: int, radius: float = 0.2, height: float = 0.42) -> list[np.ndarray]:
     """Cameras evenly around the bed's centre, each looking at it from ``radius`` off and ``height`` up."""
-    from capture.frames import look_at
+    from common.geometry import look_at
 
     angles = 2 * np.pi * np.arange(cameras) / cameras
     return [look_at(np.array([radius * np.cos(a), radius * np.sin(a), height]), np.zeros(3),

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
 import rerun as rr
+
+from common.files import atomic_path
 
 APPLICATION_ID = "mushroom-pose"
 WEB_PORT = 9090
@@ -29,32 +31,31 @@ def rerun_stream(rrd: Path | None = None, spawn: bool = False, serve: bool = Fal
     rec = rr.RecordingStream(APPLICATION_ID)
     if name:
         rec.send_recording_name(name)
-    tmp = None
-    if rrd is not None:
-        rrd = Path(rrd)
-        tmp = rrd.with_name(rrd.name + ".partial")
-        rec.save(tmp, default_blueprint=blueprint)
-    if spawn:
-        rec.spawn(connect=rrd is None, default_blueprint=blueprint)
-    if serve:
-        import sys
-        from urllib.parse import quote
-
-        uri = rec.serve_grpc(default_blueprint=blueprint)
-        rr.serve_web_viewer(web_port=WEB_PORT, connect_to=uri, open_browser=False)
-        print(f"Rerun web viewer: http://localhost:{WEB_PORT}/?url={quote(uri, safe='')} (the native viewer: "
-              f"rerun {uri})", file=sys.stderr, flush=True)
-    try:
-        yield rec
-    except BaseException:
-        rec.disconnect()
+    with nullcontext() if rrd is None else atomic_path(rrd) as tmp:
         if tmp is not None:
-            tmp.unlink(missing_ok=True)
-        raise
-    rec.flush()
-    rec.disconnect()
-    if tmp is not None:
-        tmp.replace(rrd)
+            rec.save(tmp, default_blueprint=blueprint)
+        if spawn:
+            rec.spawn(connect=rrd is None, default_blueprint=blueprint)
+        if serve:
+            _serve_web_viewer(rec, blueprint)
+        try:
+            yield rec
+        except BaseException:
+            rec.disconnect()
+            raise
+        rec.flush()
+        rec.disconnect()
+
+
+def _serve_web_viewer(rec: rr.RecordingStream, blueprint: rr.BlueprintLike | None) -> None:
+    """Serve ``rec`` over gRPC and the web viewer that reads it, and print where to open it."""
+    import sys
+    from urllib.parse import quote
+
+    uri = rec.serve_grpc(default_blueprint=blueprint)
+    rr.serve_web_viewer(web_port=WEB_PORT, connect_to=uri, open_browser=False)
+    print(f"Rerun web viewer: http://localhost:{WEB_PORT}/?url={quote(uri, safe='')} (the native viewer: "
+          f"rerun {uri})", file=sys.stderr, flush=True)
 
 
 HIDDEN_BY_DEFAULT = ("world/perception/existence", "world/perception/centers")

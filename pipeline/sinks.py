@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 import sys
 import threading
 from pathlib import Path
@@ -11,21 +10,11 @@ from pathlib import Path
 import numpy as np
 
 from capture.frames import DepthFrame
+from common.files import write_atomically  # the CLI imports it from here too
 from pipeline.runner import Detection, FusedUnit, Sink
 
 CAP_COLOR = (255, 40, 200)
 """Caps stand out in magenta against soil, white caps and the height colouring of the cloud."""
-
-
-def write_atomically(path: Path, text: str) -> None:
-    """``path`` holds ``text`` whole or keeps what it held: a temporary name, then renamed."""
-    tmp = path.with_name(path.name + ".partial")
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    except OSError:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 class RerunSink(Sink):

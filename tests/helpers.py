@@ -42,3 +42,28 @@ def rrd_timelines(path, entity: str) -> set[str]:
         if str(chunk.entity_path) == entity:
             names.update(chunk.timeline_names)
     return names
+
+
+def rrd_values(path, entity: str, component: str) -> list[tuple[dict[str, int], list]]:
+    """Every row of one component (``"Archetype:field"``, e.g. ``"Transform3D:translation"``) logged on
+    ``entity`` in a .rrd file, in logging order: (times, value) with times {timeline: int} (sequence
+    numbers; nanoseconds for timestamps; empty for static rows) and value the row's list of instances."""
+    rows = []
+    for chunk in RrdReader(str(path)).stream().to_chunks():
+        if str(chunk.entity_path) != entity:
+            continue
+        batch = chunk.to_record_batch()
+        if component not in batch.schema.names:
+            continue
+        times = {name: batch.column(name).cast("int64").to_pylist() for name in chunk.timeline_names}
+        for index, value in enumerate(batch.column(component).to_pylist()):
+            if value is not None:
+                rows.append(({name: column[index] for name, column in times.items()}, value))
+    return sorted(rows, key=lambda row: row[0].get("log_time", -1))
+
+
+def rerun_matrix(value) -> "np.ndarray":
+    """A Transform3D:mat3x3 instance (Rerun stores 3x3 matrices column by column) as a 3x3 array."""
+    import numpy as np
+
+    return np.asarray(value, np.float64).reshape(3, 3).T

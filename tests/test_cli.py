@@ -63,17 +63,13 @@ def test_synth_preview_png(tmp_path):
 
 
 def test_train_flags_set_the_loss_weights_and_defaults_are_the_papers():
-    from pipeline.cli import build_parser, train_config
+    from pipeline.cli import build_parser
+    from pipeline.commands.train import train_config
     from perception.train import TrainConfig
 
     parse = build_parser().parse_args
     default = train_config(parse(["train", "--out", "RUN"]))
-    paper = TrainConfig()
-    assert (default.weight_existence, default.weight_residual, default.weight_orientation,
-            default.orientation_on_caps, default.cap_balance, default.scale_jitter, default.milestones,
-            default.average_from) == (
-        paper.weight_existence, paper.weight_residual, paper.weight_orientation, paper.orientation_on_caps,
-        paper.cap_balance, paper.scale_jitter, paper.milestones, paper.average_from)
+    assert default == TrainConfig()
     tuned = train_config(parse(["train", "--out", "RUN", "--weight-existence", "2", "--weight-residual", "50",
                                 "--weight-orientation", "10", "--orientation-on-caps", "--cap-balance",
                                 "--scale-jitter", "1.0", "1.2", "--milestones", "0.75", "0.9",
@@ -81,19 +77,125 @@ def test_train_flags_set_the_loss_weights_and_defaults_are_the_papers():
     assert (tuned.weight_existence, tuned.weight_residual, tuned.weight_orientation, tuned.orientation_on_caps,
             tuned.cap_balance, tuned.scale_jitter, tuned.milestones, tuned.average_from, tuned.zoom) == (
         2.0, 50.0, 10.0, True, True, (1.0, 1.2), (0.75, 0.9), 0.5, 1.1)
-    assert default.zoom is None
     with pytest.raises(SystemExit) as refused:
         parse(["train", "--out", "RUN", "--zoom", "3"])
     assert refused.value.code == 2
-    assert default.scene == paper.scene
-    from perception.detect import DEFAULT_WEIGHTS
-    from perception.model import INFERENCE_ZOOM
-    from perception.train import load_weights
-    from pipeline.cli import DEFAULT_ZOOM, SHIPPED_ZOOM, SPACING_HELP
-    assert SPACING_HELP.startswith(f"{paper.scene.voxel:g},")
-    assert DEFAULT_ZOOM == INFERENCE_ZOOM and SHIPPED_ZOOM == load_weights(DEFAULT_WEIGHTS)[0].inference_zoom
     spaced = train_config(parse(["train", "--out", "RUN", "--spacing", "0.004"]))
-    assert spaced.scene.voxel == 0.004 and spaced.scene == type(paper.scene)(voxel=0.004)
+    assert spaced.scene.voxel == 0.004 and spaced.scene == type(default.scene)(voxel=0.004)
+
+
+def test_every_train_config_field_is_a_flag():
+    from pipeline.cli import build_parser
+    from pipeline.commands.train import train_config
+    from perception.synthetic.scene import SceneConfig
+    from perception.train import TrainConfig
+
+    parse = build_parser().parse_args
+    config = train_config(parse([
+        "train", "--out", "RUN", "--iterations", "7", "--lr", "0.01", "--milestones", "0.5", "--gamma", "0.5",
+        "--weight-existence", "2", "--weight-residual", "3", "--weight-orientation", "4", "--orientation-on-caps",
+        "--cap-balance", "--average-from", "0.9", "--init", "start.pt", "--zoom", "1.2", "--network", "slim",
+        "--seed", "5", "--checkpoint-every", "6", "--validate-every", "8", "--validation-scenes", "0",
+        "--queue-size", "2", "--no-rotate-z", "--scale-jitter", "1", "1.3", "--point-dropout", "0.1", "0.3",
+        "--tilt-deg", "0", "--noise", "0", "--cap-scale", "0.7", "1.2", "--spacing", "0.004",
+        "--spacing-jitter", "0.9", "1.1"]))
+    changed = {name for name, value in vars(config).items() if value != getattr(TrainConfig(), name)}
+    assert changed == set(vars(config)), set(vars(config)) - changed
+    assert config.init_weights.endswith("/start.pt") and config.point_dropout == (0.1, 0.3)
+    assert config.scene == SceneConfig(voxel=0.004, scale=(0.7, 1.2), jitter=(0.9, 1.1))
+
+
+def test_config_flags_are_read_from_the_source_as_the_dataclass_has_them():
+    import dataclasses
+
+    from pipeline.check import Tolerances
+    from pipeline.flags import NO_DEFAULT, config_fields
+    from perception.synthetic.scene import SceneConfig
+    from perception.train import TrainConfig
+
+    for reference, config in [("perception.train:TrainConfig", TrainConfig),
+                              ("perception.synthetic.scene:SceneConfig", SceneConfig),
+                              ("pipeline.check:Tolerances", Tolerances)]:
+        read = {field.name: field.default for field in config_fields(reference)}
+        assert list(read) == [field.name for field in dataclasses.fields(config)]
+        for field in dataclasses.fields(config):
+            if field.default is not dataclasses.MISSING:
+                assert read[field.name] == field.default, (reference, field.name)
+            else:
+                assert read[field.name] is NO_DEFAULT
+    assert all(field.doc for field in config_fields("perception.train:TrainConfig"))
+
+
+def test_config_flags_of_every_supported_type(tmp_path, monkeypatch, capsys):
+    import argparse
+
+    from pipeline.flags import add_config_flags, config_from_args
+
+    (tmp_path / "flag_example.py").write_text('''
+from __future__ import annotations
+from dataclasses import dataclass, field
+from typing import Literal
+
+
+@dataclass(frozen=True)
+class Example:
+    count: int = 3
+    """How many, 100% of them."""
+    rate: float = 0.5
+    name: str = "a"
+    on: bool = True
+    """Whether it runs."""
+    limit: float | None = None
+    steps: tuple[float, ...] = (0.1, 0.2)
+    pair: tuple[int, int] = (1, 2)
+    mode: Literal["fast", "slow"] = "fast"
+    """``count`` times."""
+    kept: int = field(default=4, metadata={"unit": "mm"})
+    nested: dict = field(default_factory=dict)
+''')
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import flag_example
+
+    parser = argparse.ArgumentParser()
+    add_config_flags(parser, "flag_example:Example", {"rate": {"name": "speed", "help": "How fast."}},
+                     exclude=("nested",), prefix="x_")
+    assert config_from_args(flag_example.Example, parser.parse_args([]), prefix="x_") == flag_example.Example()
+    args = parser.parse_args(["--x-count", "5", "--speed", "2", "--x-name", "b", "--no-x-on", "--x-limit", "1",
+                              "--x-steps", "0.3", "--x-pair", "7", "8", "--x-mode", "slow", "--x-kept", "9"])
+    assert config_from_args(flag_example.Example, args, prefix="x_", nested={"k": 1}) == flag_example.Example(
+        5, 2.0, "b", False, 1.0, (0.3,), (7, 8), "slow", 9, {"k": 1})
+    parser.print_help()
+    shown = " ".join(capsys.readouterr().out.split())
+    assert "How many, 100% of them. (default: 3)" in shown and "How fast. (default: 0.5)" in shown
+    assert "--x-on, --no-x-on Whether it runs. (default: --x-on)" in shown
+    assert "--x-mode {fast,slow} --x-count times. (default: fast)" in shown
+    with pytest.raises(TypeError, match="nested"):
+        add_config_flags(argparse.ArgumentParser(), "flag_example:Example")
+    with pytest.raises(TypeError, match="unknown flag options"):
+        add_config_flags(argparse.ArgumentParser(), "flag_example:Example", {"rate": {"type": float}})
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--x-mode", "medium"])
+
+
+def test_the_parser_restates_its_choices_as_the_libraries_define_them():
+    from perception.instances import METHODS
+    from perception.synthetic.scene import VISIBILITY_MODELS
+    from pipeline.commands.common import CAMERAS, CLUSTERING, SHIPPED_ZOOM, SPACING_HELP, VISIBILITY
+    from perception.detect import DEFAULT_WEIGHTS
+    from perception.synthetic.scene import SceneConfig
+    from perception.train import load_weights
+    from pipeline import sources
+
+    assert (CLUSTERING, CAMERAS, VISIBILITY) == (METHODS, sources.CAMERAS, VISIBILITY_MODELS)
+    assert SPACING_HELP.startswith(f"{SceneConfig.voxel:g},")
+    assert SHIPPED_ZOOM == load_weights(DEFAULT_WEIGHTS)[0].inference_zoom
+
+
+def test_building_the_parser_imports_no_heavy_library():
+    code = ("import sys; from pipeline.cli import build_parser; build_parser(); "
+            "print(sorted(m for m in ('numpy', 'torch', 'open3d', 'rerun') if m in sys.modules))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0 and result.stdout.strip() == "[]", result.stderr
 
 
 def test_a_spacing_in_millimetres_or_too_fine_gives_one_line_and_exit_2(tmp_path):
@@ -106,12 +208,14 @@ def test_a_spacing_in_millimetres_or_too_fine_gives_one_line_and_exit_2(tmp_path
     assert not (tmp_path / "run").exists() and not (tmp_path / "s").exists()
 
 
-def test_a_scale_jitter_upside_down_gives_one_line_and_exit_2(tmp_path):
-    result = run("train", "--out", str(tmp_path / "run"), "--scale-jitter", "1.2", "1.0")
-    assert result.returncode != 0 and "Traceback" not in result.stderr
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1 and "--scale-jitter" in lines[0], result.stderr
-    assert not (tmp_path / "run" / "checkpoint.pt").exists()
+@pytest.mark.parametrize("flag", ["--scale-jitter", "--point-dropout", "--cap-scale", "--spacing-jitter"])
+def test_a_range_upside_down_gives_one_line_and_exit_2(tmp_path, capsys, flag):
+    from pipeline.cli import main
+
+    assert main(["train", "--out", str(tmp_path / "run"), flag, "0.3", "0.2"]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and f"{flag} wants LOW HIGH with LOW <= HIGH" in lines[0], lines
+    assert not (tmp_path / "run").exists()
 
 
 def test_milestones_out_of_order_give_one_line_and_exit_2(tmp_path):
@@ -146,6 +250,13 @@ def test_a_loss_weight_that_is_not_positive_gives_one_line_and_exit_2(tmp_path):
     (["train", "--out", "OUT", "--scale-jitter", "1", "inf"], "must be a finite number"),
     (["train", "--out", "OUT", "--seed", "99999999999999999999999"], "below 2^63"),
     (["train", "--out", "OUT", "--threads", "100000"], "4 per core"),
+    (["train", "--out", "OUT", "--gamma", "0"], "must be positive"),
+    (["train", "--out", "OUT", "--noise", "-0.001"], "must not be negative"),
+    (["train", "--out", "OUT", "--point-dropout", "0", "1"], "a fraction of the points"),
+    (["train", "--out", "OUT", "--queue-size", "1000"], "at most 64"),
+    (["train", "--out", "OUT", "--network", "huge"], "unknown network 'huge'"),
+    (["train", "--out", "OUT", "--rotate-z", "yes"], "unrecognized arguments: yes"),
+    (["replay", "OUT.mcap", "--tol-axis-deg", "0"], "must be positive"),
     (["train", "--out", "OUT", "--resume"], "no checkpoint to resume"),
     (["train", "--out", "OUT", "--device", "gpu", "--validation-scenes", "0"], "unknown device"),
     (["record", "--camera", "virtual", "--out", "OUT/r.mcap", "--duration", "inf"], "must be a finite number"),

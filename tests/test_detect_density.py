@@ -5,7 +5,7 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
-from capture.frames import voxel_representatives
+from common.geometry import voxel_representatives
 from perception.detect import predict
 from helpers import tiny_network_config
 from perception.model import MushroomNet

@@ -3,7 +3,6 @@ surface accuracy against the true meshes, turntable and rig calibration, the rig
 and bad input."""
 
 import dataclasses
-import time
 import types
 
 import numpy as np
@@ -11,8 +10,9 @@ import open3d as o3d
 import pytest
 from scipy.spatial import cKDTree
 
-from capture.frames import CameraIntrinsics, DepthFrame, frame_to_points, look_at, transform_points
-from capture.virtual import Turntable, VirtualCameraConfig, VirtualSource, circle_rig
+from capture.frames import CameraIntrinsics, DepthFrame, frame_to_points
+from capture.virtual import VirtualCameraConfig, VirtualSource, circle_rig
+from common.geometry import Turntable, look_at, transform_points
 from fusion.cloud import FusedCloud, FusionConfig, Fuser, fuse, log_rerun
 from fusion.integrate import IntegrationConfig, smooth_depth
 from fusion.registration import RegistrationConfig, pose_change, prepare_view, refine_poses
@@ -22,7 +22,6 @@ from pipeline.sources import VirtualBedRig, virtual_bed_source
 VIEWS = 6
 SMALL = CameraIntrinsics.realsense_d405(424, 240)
 TINY = CameraIntrinsics.realsense_d405(212, 120)
-TIMES: dict[str, float] = {}
 
 
 def one_line_error(excinfo) -> str:
@@ -62,10 +61,7 @@ def surface_rms(session, world_points: np.ndarray) -> float:
 def streamed(session):
     """The blind frames through the streaming Fuser with the perturbed rig: one cloud per turn."""
     fuser = Fuser(FusionConfig(), session.rig)
-    start = time.perf_counter()
-    outputs = [fuser.add(frame) for frame in session.blind]
-    TIMES["fuse 6 views (refine + merge)"] = time.perf_counter() - start
-    return outputs
+    return [fuser.add(frame) for frame in session.blind]
 
 
 def test_refinement_recovers_true_poses(session, streamed):
@@ -113,28 +109,27 @@ def check_axis(session, estimate: Turntable) -> None:
     offset = estimate.axis_point - session.turntable.axis_point
     off_axis = np.linalg.norm(offset - (offset @ session.turntable.axis_direction) * session.turntable.axis_direction)
     print(f"axis direction error {direction_error:.3f} deg, axis point off by {1000 * off_axis:.2f} mm")
-    assert direction_error <= 1.0 and off_axis <= 0.003
+    # measured on this session (bed 0) and on beds 1-3 made alike, from nominal poses and from nothing
+    # (FPFH), which agree to 0.001 deg and 0.01 mm: direction 0.004-0.025 deg, axis point 0.01-0.19 mm;
+    # bounds twice the worst
+    assert direction_error <= 0.05 and off_axis <= 0.0004
 
 
 def test_turntable_estimation_recovers_the_axis(session):
     """Calibration of a turntable known only nominally: the perturbed prior's poses seed the chain."""
     nominal = [dataclasses.replace(f, T_world_camera=session.rig.T_world_camera("virtual", f.turntable_angle),
                                    turntable_angle=None) for f in session.blind]
-    start = time.perf_counter()
     check_axis(session, estimate_turntable(nominal))
-    TIMES["turntable calibration from nominal poses"] = time.perf_counter() - start
     with pytest.raises(ValueError) as excinfo:
         estimate_turntable(nominal[:1])
     assert "at least 3" in one_line_error(excinfo)
 
 
-@pytest.mark.slow
 def test_turntable_estimation_from_nothing(session):
-    """No poses at all: consecutive views are seeded by FPFH + RANSAC."""
+    """No poses at all: consecutive views are seeded by FPFH + RANSAC (about 20 s, the longest test of
+    the default run; the users of a turntable with no encoder rely on it)."""
     unposed = [dataclasses.replace(f, T_world_camera=None, turntable_angle=None) for f in session.frames]
-    start = time.perf_counter()
     check_axis(session, estimate_turntable(unposed, T_world_first=session.truth[0]))
-    TIMES["turntable calibration from nothing (FPFH chain)"] = time.perf_counter() - start
 
 
 def test_rig_extrinsics_between_two_cameras(session):
@@ -309,11 +304,6 @@ def test_bed_plane_follows_cloddy_soil(seed):
     T = estimate_bed_frame(camera_side)
     error = np.degrees(np.arccos(np.clip(T[:3, 2] @ (tilt @ soil_normal), -1, 1)))
     assert error < 1.5, f"bed normal off the soil's by {error:.2f} deg"
-
-
-def test_report_times():
-    for name, seconds in TIMES.items():
-        print(f"{name}: {seconds:.1f} s")
 
 
 def test_voxel_merge_gives_each_voxels_mean_and_takes_frames_back():

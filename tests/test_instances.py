@@ -90,7 +90,7 @@ def test_scattered_or_non_finite_candidates_make_no_caps_and_no_error():
 
 
 def test_cell_lookup_finds_equal_cells_and_nothing_else():
-    from capture.frames import cell_lookup
+    from common.geometry import cell_lookup
 
     cells = np.array([[3, -2, 7], [0, 0, 0], [-5, 4, 1]])
     queries = np.array([[[0, 0, 0], [-5, 4, 1]], [[3, -2, 7], [3, -2, 8]]])

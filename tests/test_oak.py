@@ -11,10 +11,11 @@ import pytest
 
 dai = pytest.importorskip("depthai")
 
-from capture.frames import CameraIntrinsics, DepthFrame, frame_to_points, look_at  # noqa: E402
+from capture.frames import CameraIntrinsics, DepthFrame, frame_to_points  # noqa: E402
 from capture.oak import (COLOR_SOCKET, OakConfig, OakSource, depth_frame_from_imgframe,  # noqa: E402
                          find_cameras, intrinsics_from_calibration, rgb_from_imgframe)
 from capture.virtual import SensorModel, VirtualCameraConfig, VirtualSource  # noqa: E402
+from common.geometry import look_at  # noqa: E402
 
 INTRINSICS = CameraIntrinsics(160, 120, 100.0, 100.0, 79.5, 59.5)
 

@@ -10,11 +10,12 @@ import pytest
 
 rs = pytest.importorskip("pyrealsense2")
 
-from capture.frames import CameraIntrinsics, DepthFrame, look_at  # noqa: E402
+from capture.frames import CameraIntrinsics, DepthFrame  # noqa: E402
 from capture.realsense import (RealSenseConfig, RealSenseSource, find_cameras,  # noqa: E402
                                write_device_recording)
 from capture.source import SourceError  # noqa: E402
 from capture.virtual import SensorModel, VirtualCameraConfig, VirtualSource  # noqa: E402
+from common.geometry import look_at  # noqa: E402
 
 INTRINSICS = CameraIntrinsics(160, 120, 100.0, 100.0, 79.5, 59.5)
 COLOR_INTRINSICS = CameraIntrinsics(320, 240, 200.0, 200.0, 159.5, 119.5)

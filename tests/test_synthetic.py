@@ -178,7 +178,7 @@ def test_a_preset_at_another_spacing_is_the_same_beds_cached_apart(tmp_path, mon
 
 
 def test_voxel_representatives_keep_the_first_point_of_every_voxel():
-    from capture.frames import voxel_representatives
+    from common.geometry import voxel_representatives
 
     rng = np.random.default_rng(0)
     for count, spread in ((7, 0.01), (5000, 0.5), (3000, 40.0)):

@@ -11,6 +11,7 @@ from typing import Iterator
 import numpy as np
 from tqdm import tqdm
 
+from common.files import atomic_path
 from perception.synthetic.scene import GENERATOR_VERSION, SceneConfig, SyntheticScene, generate_scene
 
 
@@ -67,27 +68,32 @@ def write_ply(scene: SyntheticScene, path: Path) -> None:
 
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scene.points.astype(np.float64)))
     cloud.colors = o3d.utility.Vector3dVector(label_colors(scene))
-    tmp = path.with_suffix(".tmp.ply")
-    if not o3d.io.write_point_cloud(str(tmp), cloud, compressed=False):
-        raise OSError(f"could not write {path}")
-    tmp.replace(path)
+    with atomic_path(path, keep_suffix=True) as tmp:
+        if not o3d.io.write_point_cloud(str(tmp), cloud, compressed=False):
+            raise OSError(f"could not write {path}")
 
 
 def write_scene(scene: SyntheticScene, out_dir: Path, index: int, ply: bool = True) -> Path:
     """Write ``scene_NNNN.npz`` (and ``.ply``) atomically: a crash never leaves half a file."""
     path = scene_path(out_dir, index)
-    tmp = path.with_name(path.stem + ".tmp.npz")
-    scene.save(tmp)
-    tmp.replace(path)
+    with atomic_path(path, keep_suffix=True) as tmp:
+        scene.save(tmp)
     if ply:
         write_ply(scene, path.with_suffix(".ply"))
     return path
 
 
-def generate_many(seeds: list[int], config: SceneConfig, progress: bool = True,
-                  description: str = "scenes") -> Iterator[SyntheticScene]:
-    for seed in tqdm(seeds, desc=description, unit="scene", disable=not progress, leave=False):
-        yield generate_scene(seed, config)
+def generate_many(seeds: list[int], config: SceneConfig, progress: bool = True, description: str = "scenes",
+                  use_ray: bool = False, ray_address: str | None = None) -> Iterator[SyntheticScene]:
+    """The scenes of ``seeds`` in their order, made here or, with ``use_ray``, as Ray tasks (the same
+    scenes: a scene depends on its seed alone)."""
+    if use_ray:
+        from common.distributed import ray_map
+
+        scenes = ray_map(generate_scene, [(seed, config) for seed in seeds], ray_address)
+    else:
+        scenes = (generate_scene(seed, config) for seed in seeds)
+    yield from tqdm(scenes, desc=description, unit="scene", total=len(seeds), disable=not progress, leave=False)
 
 
 def load_preset(name: str, visibility: str = "hpr", progress: bool = True,

@@ -12,8 +12,9 @@ from dataclasses import asdict, dataclass, field, fields
 import numpy as np
 import open3d as o3d
 
-from capture.frames import CameraIntrinsics, backproject, look_at, transform_points, voxel_representatives
+from capture.frames import CameraIntrinsics, backproject
 from capture.virtual import MeshScene, SensorModel, apply_sensor_model
+from common.geometry import look_at, transform_points, voxel_representatives
 from perception.cap import CAP_HEIGHT_RATIO, CAP_RADIUS_AT_UNIT_SCALE, cap_box, cap_rotation
 from perception.encoding import EncodingTargets, encode
 from perception.synthetic.template import RIM_RATIO, STEM_LENGTH_RATIO, STEM_RADIUS_RATIO, mushroom_template

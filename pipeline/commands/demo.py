@@ -1,0 +1,52 @@
+"""``mushroom-pose demo``: the whole chain on a virtual turntable, no hardware."""
+
+from __future__ import annotations
+
+import argparse
+
+from pipeline.commands.common import (CliError, load_model, parse_seed, parse_threads, positive, torch_threads,
+                                      writable_dir)
+
+OUTPUTS = ("session.mcap", "detections.json", "demo.rrd")
+"""What a demo writes into --out; none is replaced without --overwrite (as with record)."""
+
+NAME = "demo"
+HELP = "the whole chain on a virtual turntable: capture, MCAP, fusion, detection, Rerun (no hardware)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", default="demo", help="output folder (default ./demo): session.mcap, "
+                        "detections.json, demo.rrd")
+    parser.add_argument("--seed", type=parse_seed, default=0, help="which synthetic bed")
+    parser.add_argument("--views", type=positive(int), default=18, help="turntable views (default 18)")
+    parser.add_argument("--model", help="weights file (default: the shipped model)")
+    parser.add_argument("--spawn", action="store_true", help="also show the run in a Rerun viewer")
+    parser.add_argument("--no-rrd", action="store_true", help="do not write demo.rrd")
+    parser.add_argument("--threads", type=parse_threads, help="torch threads (default: all cores)")
+    parser.add_argument("--overwrite", action="store_true", help="replace the outputs of an earlier demo in --out")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    from pipeline.demo import run_demo
+
+    model, _ = load_model(args.model)
+    out_dir = writable_dir(args.out)
+    taken = [out_dir / name for name in OUTPUTS if (out_dir / name).exists()]
+    if taken and not args.overwrite:
+        raise CliError(f"{taken[0]} exists (an earlier run's output): pass --overwrite to replace it, or "
+                       "choose another --out")
+    torch_threads(args.threads)
+    print(f"a virtual D405 circles synthetic bed {args.seed} ({args.views} views, 848x480); "
+          f"model: {args.model or 'shipped'}")
+    try:
+        result = run_demo(out_dir, model, args.seed, args.views, not args.no_rrd, args.spawn, progress=not args.quiet)
+    except (OSError, ValueError) as error:
+        raise CliError(str(error)) from None
+    stages = ", ".join(f"{name} {value:.1f} s" for name, value in result.seconds.items())
+    axis = f"axis error {result.angle_deg:.1f} deg" if result.caps_found else "no caps matched"
+    print(f"{result.caps_found} caps found, {result.caps_true} on the bed: AP@25 {result.ap25:.1%}, "
+          f"AP@50 {result.ap50:.1%}, {axis} ({stages})")
+    print(f"detections: {result.detections}  session: {result.recording}"
+          + (f"  rerun: {result.rrd} (open with: rerun {result.rrd})" if result.rrd else ""))
+    return 0

@@ -1,0 +1,156 @@
+"""``mushroom-pose detect``: the caps in a point cloud file, or in a session's frames fused first."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from pipeline.commands.common import (CLUSTERING, SHIPPED_ZOOM, CliError, load_model, model_path, parse_zoom,
+                                      replace_file, writable_file)
+
+NAME = "detect"
+HELP = ("find caps in a point cloud (.ply, .pcd, .npz) or a session .mcap (its fused cloud, or its frames fused "
+        "first)")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("cloud", help="the point cloud file")
+    parser.add_argument("--out", default="detections.json", help="detections JSON (default detections.json)")
+    parser.add_argument("--rrd", help="also write a Rerun recording of the result")
+    parser.add_argument("--model", help="weights file (default: the shipped model)")
+    parser.add_argument("--clustering", choices=CLUSTERING, default="meanshift")
+    parser.add_argument("--zoom", type=parse_zoom, help="scale the network reads the cloud at (default: the one "
+                        f"the weights record, {SHIPPED_ZOOM} for the shipped model, lowered for clouds sparser than "
+                        "its training beds)")
+    parser.add_argument("--bed-frame", action="store_true",
+                        help="the cloud is already in the bed frame (z up, origin on the bed plane)")
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+
+    import numpy as np
+
+    from capture.frames import transform_points
+    from fusion.bed import estimate_bed_frame
+    from perception.cap import detections_document
+    from perception.detect import detect_points, log_rerun, transform_result
+    from perception.instances import ClusterConfig
+    from pipeline.clouds import load_cloud
+    from pipeline.rerun_sink import rerun_stream
+
+    if Path(args.cloud).suffix.lower() == ".mcap" and _is_raw_session(Path(args.cloud)):
+        return _detect_session(args)
+    try:
+        cloud = load_cloud(Path(args.cloud))
+    except ValueError as error:
+        raise CliError(str(error)) from None
+    out = writable_file(args.out, inputs=(args.cloud, model_path(args.model)))
+    rrd = writable_file(args.rrd, inputs=(args.cloud, model_path(args.model)))
+    if rrd is not None and rrd.resolve() == out.resolve():
+        raise CliError(f"--out and --rrd are both {args.out}; give them different names")
+    if cloud.unit_scale != 1.0:
+        print(f"note: {args.cloud} spans {cloud.extent:.3g} units, "
+              "so it is read as millimetres and converted to metres", file=sys.stderr)
+    model, _ = load_model(args.model)
+    points = cloud.points
+    if cloud.in_bed_frame or args.bed_frame:
+        T_input_bed, frame = np.eye(4), "bed"
+    else:
+        try:
+            T_input_bed = estimate_bed_frame(points)
+        except (ValueError, RuntimeError) as error:
+            raise CliError(f"cannot find the bed plane: {error}") from None
+        frame = "input"
+    bed_points = transform_points(np.linalg.inv(T_input_bed), points)
+    try:
+        result = detect_points(model, bed_points, ClusterConfig(method=args.clustering), zoom=args.zoom)
+    except ValueError as error:
+        raise CliError(str(error)) from None
+    result = transform_result(result, T_input_bed, frame)
+    print(f"{len(result.mushrooms)} caps in {args.cloud} ({len(points)} points, frame: {frame}, metres)")
+    _print_caps(result, T_input_bed[:3, 2])
+    _warn_outside_range(model, bed_points, result, args.cloud)
+    payload = {**detections_document(result.mushrooms, frame), "T_input_bed": T_input_bed.tolist()}
+    replace_file(out, json.dumps(payload, indent=1))
+    with rerun_stream(rrd) as rec:
+        if rec is not None:
+            log_rerun(rec, result, points)
+    print(f"detections: {out}" + (f"  rerun: {rrd}" if rrd else ""))
+    return 0
+
+
+def _is_raw_session(path: Path) -> bool:
+    """A recording of depth frames with no fused cloud: ``detect`` fuses it first."""
+    from capture.mcap_io import McapSource, read_point_cloud
+    from capture.source import SourceError
+
+    try:
+        read_point_cloud(path)
+        return False
+    except SourceError:
+        pass
+    try:
+        with McapSource(path) as session:
+            return bool(session.sensor_ids)
+    except SourceError:
+        return False
+
+
+def _detect_session(args: argparse.Namespace) -> int:
+    """``detect`` on a session of raw frames: fused and detected through the runner, caps in the world frame."""
+    from capture.mcap_io import McapSource
+    from capture.source import SourceError
+    from pipeline.runner import PerceptionStage, RunConfig
+    from pipeline.session import Outputs, run_chain
+
+    out = writable_file(args.out, inputs=(args.cloud, model_path(args.model)), suffix=".json")
+    rrd = writable_file(args.rrd, inputs=(args.cloud, model_path(args.model)), suffix=".rrd")
+    model, _ = load_model(args.model)
+    source = McapSource(args.cloud)
+    try:
+        source.open()
+        summary = run_chain(source, model, RunConfig(perception=PerceptionStage(args.clustering)),
+                            Outputs(rrd=rrd, detections=out, name=Path(args.cloud).name, quiet=True),
+                            sensors=max(1, len(source.sensor_ids)))
+    except (SourceError, ValueError) as error:
+        raise CliError(str(error)) from None
+    if not summary.detections:
+        raise CliError(f"{args.cloud}: its frames gave no fused cloud")
+    result = summary.last_detection.result
+    print(f"{len(result.mushrooms)} caps in {args.cloud} (fused {summary.units} units from {summary.frames} frames; "
+          "the last unit's caps, frame: world, metres)")
+    _print_caps(result, summary.last_detection.unit.cloud.T_world_bed[:3, 2])
+    print(f"detections: {out}" + (f"  rerun: {rrd}" if rrd else ""))
+    return 0
+
+
+def _warn_outside_range(model, bed_points, result, cloud: str) -> None:
+    """Say so on stderr when a cloud or its caps lie outside the range the model holds to."""
+    from perception.detect import OPERATING_DIAMETER, OPERATING_SPACING, at_training_density, point_spacing
+
+    spacing = point_spacing(bed_points[at_training_density(model, bed_points)])
+    if spacing > OPERATING_SPACING:
+        print(f"warning: the points of {cloud} lie as far apart as a bed sampled every {1000 * spacing:.1f} mm; the "
+              f"model holds to {1000 * OPERATING_SPACING:g} mm: caps under 30 mm across are found less reliably",
+              file=sys.stderr)
+    wide = sum(2 * m.radius > OPERATING_DIAMETER for m in result.mushrooms)
+    if wide:
+        print(f"warning: {wide} caps are over {1000 * OPERATING_DIAMETER:.0f} mm across, beyond the sizes the model "
+              "holds to: their size and axis are less reliable", file=sys.stderr)
+    if not result.mushrooms and len(bed_points) > 1000:
+        print(f"warning: no caps in {len(bed_points)} points: if the bed plainly has caps, check the cloud's units "
+              "and that it shows a bed seen from above", file=sys.stderr)
+
+
+def _print_caps(result, up) -> None:
+    """One line per cap: centre (mm), tilt from ``up`` (deg), diameter (mm) and score."""
+    from perception.cap import tilt_deg
+
+    if result.mushrooms:
+        print(f"{'id':>3} {'x mm':>8} {'y mm':>8} {'z mm':>8} {'tilt deg':>8} {'cap mm':>7} {'score':>6}")
+    for m in result.mushrooms:
+        x, y, z = 1000 * m.center
+        print(f"{m.id:>3} {x:>8.1f} {y:>8.1f} {z:>8.1f} {float(tilt_deg(m.axis, up)):>8.1f} "
+              f"{2000 * m.radius:>7.1f} {m.score:>6.2f}")

@@ -1,0 +1,98 @@
+"""``mushroom-pose live``: capture, fuse and detect as frames arrive, shown in Rerun and recorded."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from pipeline.commands.common import (CAMERAS, CLUSTERING, STOP_EXIT, CliError, load_model, parse_seed, parse_threads,
+                                      positive, torch_threads, writable_file, written_files)
+
+NAME = "live"
+HELP = "capture, fuse and detect as frames arrive, shown in Rerun and recorded"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--camera", choices=CAMERAS, required=True)
+    parser.add_argument("--serial", help="which camera (serial number or OAK MxId) when several are attached")
+    parser.add_argument("--playback", help="RealSense: play this recorded device file (.db3) through the driver")
+    parser.add_argument("--rig", help="rig file from mushroom-pose calibrate (turntable or several cameras)")
+    parser.add_argument("--window", type=positive(int), help="one camera without a rig: fuse the last N frames "
+                        "(registered by ICP) after every frame (default: each frame alone)")
+    parser.add_argument("--record", help="record the session (frames, fused clouds, caps) to this .mcap")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing --record file")
+    parser.add_argument("--rrd", help="save the Rerun recording to this .rrd")
+    parser.add_argument("--detections", help="keep the newest caps in this JSON file")
+    viewer = parser.add_mutually_exclusive_group()
+    viewer.add_argument("--spawn", action="store_true", help="show the run in a Rerun viewer")
+    viewer.add_argument("--serve", action="store_true", help="serve the Rerun web viewer (a headless machine)")
+    parser.add_argument("--duration", type=positive(float), help="seconds to capture (default: until the camera "
+                        "ends, --turns, or Ctrl-C)")
+    parser.add_argument("--turns", type=positive(int), help="stop after this many fused units (turns of a turntable)")
+    parser.add_argument("--seed", type=parse_seed, default=0, help="virtual camera: which synthetic bed")
+    parser.add_argument("--views", type=positive(int), default=18, help="virtual camera: views per turn")
+    parser.add_argument("--model", help="weights file (default: the shipped model)")
+    parser.add_argument("--clustering", choices=CLUSTERING, default="meanshift")
+    parser.add_argument("--threads", type=parse_threads, help="torch threads (default: all cores)")
+    parser.add_argument("--quiet", action="store_true", help="no line per fused unit")
+
+
+def _checked_outputs(args: argparse.Namespace) -> tuple[Path | None, Path | None, Path | None]:
+    """The --record, --rrd and --detections files, refused before any camera opens."""
+    if args.playback and args.camera != "realsense":
+        raise CliError("--playback plays a RealSense device file: use it with --camera realsense")
+    if args.playback and not Path(args.playback).is_file():
+        raise CliError(f"--playback: no device file at {args.playback}")
+    record = writable_file(args.record, suffix=".mcap")
+    if record is not None and record.exists() and not args.overwrite:
+        raise CliError(f"{record} exists: pass --overwrite to replace it")
+    return record, writable_file(args.rrd, suffix=".rrd"), writable_file(args.detections, suffix=".json")
+
+
+def run(args: argparse.Namespace) -> int:
+    from capture.mcap_io import graceful_stop
+    from capture.source import SourceError
+    from fusion.turntable import Rig
+    from pipeline.runner import FusionStage, PerceptionStage, RunConfig
+    from pipeline.session import Outputs, run_chain
+    from pipeline.sources import make_source
+
+    record, rrd, detections = _checked_outputs(args)
+    rig = None
+    if args.rig:
+        try:
+            rig = Rig.load(args.rig)
+        except ValueError as error:
+            raise CliError(str(error)) from None
+    model, _ = load_model(args.model)
+    torch_threads(args.threads)
+    try:
+        source = make_source(args.camera, args.serial, args.seed, args.views, playback=args.playback, live=True)
+    except (SourceError, ImportError, ValueError) as error:
+        raise CliError(f"{args.camera} camera: {error}") from None
+    if args.camera == "virtual" and rig is None:
+        rig = Rig(source.source.config.turntable)
+    config = RunConfig(fusion=FusionStage(rig=rig, window=args.window), perception=PerceptionStage(args.clustering),
+                       live=True, max_units=args.turns, duration_s=args.duration)
+    outputs = Outputs(record=record, rrd=rrd, detections=detections, spawn=args.spawn, serve=args.serve,
+                      name=f"live {args.camera} {time.strftime('%Y-%m-%d %H:%M:%S')}", quiet=args.quiet)
+    with graceful_stop() as stop:
+        try:
+            summary = run_chain(source, model, config, outputs,
+                                on_start=lambda text: print(f"fused unit: {text}", flush=True),
+                                stop_requested=lambda: stop.signal if stop.requested else None,
+                                overwrite=args.overwrite)
+        except (SourceError, ValueError, OSError) as error:
+            kept = written_files((record, rrd, detections))
+            raise CliError(f"{args.camera} camera: {error}" + (f"; kept {kept}" if kept else "")) from None
+    outputs_line = written_files((record, rrd, detections)) or "nothing (add --record, --rrd or --detections)"
+    line = (f"{summary.frames} frames, {summary.units} fused units, {len(summary.detections)} detected, "
+            f"{summary.dropped_frames} frames and {summary.dropped_units} units dropped, {summary.failed_units} "
+            f"units skipped; wrote {outputs_line}")
+    if summary.stopped_by in STOP_EXIT:
+        print(f"stopped by {summary.stopped_by}: {line}", file=sys.stderr)
+        return STOP_EXIT[summary.stopped_by]
+    print(f"{summary.stopped_by}: {line}")
+    return 0

@@ -1,0 +1,48 @@
+"""``mushroom-pose record``: a depth camera session to MCAP."""
+
+from __future__ import annotations
+
+import argparse
+
+from pipeline.commands.common import CAMERAS, CliError, parse_seed, positive, writable_file
+
+NAME = "record"
+HELP = "record a depth camera session to MCAP"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--camera", choices=CAMERAS, required=True)
+    parser.add_argument("--serial", help="which camera (serial number or OAK MxId) when several are attached")
+    parser.add_argument("--out", required=True, help="the .mcap file to write")
+    parser.add_argument("--duration", type=positive(float), help="seconds to record (default: until the "
+                        "source ends or Ctrl-C)")
+    parser.add_argument("--seed", type=parse_seed, default=0, help="virtual camera: which synthetic bed")
+    parser.add_argument("--views", type=positive(int), default=18, help="virtual camera: turntable views")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    parser.add_argument("--quiet", action="store_true")
+
+
+def run(args: argparse.Namespace) -> int:
+    from capture.mcap_io import record
+    from capture.source import SourceError
+    from pipeline.sources import make_source
+
+    out = writable_file(args.out)
+    if out.exists() and not args.overwrite:
+        raise CliError(f"{out} exists: pass --overwrite to replace it")
+    written = [0]
+    try:
+        source = make_source(args.camera, args.serial, args.seed, args.views)
+        with source:
+            summary = record(source, out, args.duration, progress=not args.quiet, overwrite=args.overwrite,
+                             on_frame=lambda frames, _: written.__setitem__(0, frames))
+    except (SourceError, ValueError) as error:
+        kept = (f"; the {written[0]} frames recorded so far are in {out}" if written[0]
+                else "; nothing was recorded" + (f", {out} is as it was" if out.exists() else ""))
+        camera = f"{args.camera} camera: " if isinstance(error, SourceError) else ""
+        raise CliError(f"{camera}{error}{kept}") from None
+    except (ImportError, FileExistsError) as error:
+        raise CliError(str(error)) from None
+    print(f"recorded {summary.frames} frames in {summary.seconds:.1f} s ({summary.stopped_by}) -> {out} "
+          f"({summary.bytes / 1e6:.1f} MB)")
+    return 0

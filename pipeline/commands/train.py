@@ -1,0 +1,122 @@
+"""``mushroom-pose train``: every TrainConfig field as a flag, and the run's own options."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from pipeline.commands.common import (CliError, at_most, non_negative, parse_learning_rate, parse_run_fraction,
+                                      parse_seed, parse_spacing, parse_threads, parse_zoom, positive, torch_threads,
+                                      writable_dir)
+
+TRAIN_CONFIG = "perception.train:TrainConfig"
+SCENE_CONFIG = "perception.synthetic.scene:SceneConfig"
+SCENE = "scene_"
+"""Prefix of the parsed values that go to TrainConfig.scene."""
+RANGE = ("LOW", "HIGH")
+
+TRAIN_FLAGS = {
+    "iterations": {"parse": positive(int)},
+    "lr": {"parse": parse_learning_rate},
+    "milestones": {"parse": parse_run_fraction, "metavar": "FRACTION"},
+    "gamma": {"parse": at_most(positive(float), 1.0, " (1 keeps the learning rate)")},
+    "weight_existence": {"parse": positive(float)},
+    "weight_residual": {"parse": positive(float)},
+    "weight_orientation": {"parse": positive(float)},
+    "average_from": {"parse": parse_run_fraction, "metavar": "FRACTION"},
+    "init_weights": {"name": "init", "metavar": "WEIGHTS"},
+    "zoom": {"parse": parse_zoom},
+    "seed": {"parse": parse_seed},
+    "checkpoint_every": {"parse": positive(int)},
+    "validate_every": {"parse": positive(int)},
+    "validation_scenes": {"parse": non_negative(int)},
+    "queue_size": {"parse": at_most(positive(int), 64, " beds (each waiting bed holds all its points)")},
+    "scale_jitter": {"parse": positive(float), "metavar": RANGE},
+    "point_dropout": {"parse": at_most(non_negative(float), 0.99, " (a fraction of the points)"), "metavar": RANGE},
+    "tilt_deg": {"parse": at_most(non_negative(float), 90.0, " degrees")},
+    "noise": {"parse": at_most(non_negative(float), 0.01, " metres (0.0005 is half a millimetre)")},
+}
+"""Validators and names of TrainConfig's flags where its field's type and name are not enough
+(pipeline.flags.FLAG_KEYS)."""
+
+SCENE_FLAGS = {
+    "voxel": {"name": "spacing", "parse": parse_spacing, "metavar": "M",
+              "help": "Point spacing of the training beds in metres (perception.synthetic.scene.SceneConfig.voxel)."},
+    "jitter": {"name": "spacing-jitter", "parse": positive(float), "metavar": RANGE,
+               "help": "Each bed's point spacing is --spacing times a factor from [low, high]."},
+    "scale": {"name": "cap-scale", "parse": positive(float), "metavar": RANGE,
+              "help": "Cap scale s of the training beds, a 40 mm cap at s = 1 (the paper's)."},
+}
+"""The fields of TrainConfig.scene that are train flags; SceneConfig documents none of these three."""
+
+NAME = "train"
+HELP = "train the network on fresh synthetic beds (resumable)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from pipeline.flags import add_config_flags  # loads ast: only a parsed train pays it
+
+    parser.add_argument("--out", required=True, help="run folder: checkpoint.pt, history.csv, model.pt, .rrd")
+    add_config_flags(parser, TRAIN_CONFIG, TRAIN_FLAGS, exclude=("scene",))
+    add_config_flags(parser, SCENE_CONFIG, SCENE_FLAGS, only=tuple(SCENE_FLAGS), prefix=SCENE)
+    parser.add_argument("--resume", action="store_true", help="continue the checkpoint in --out exactly")
+    parser.add_argument("--max-minutes", type=positive(float),
+                        help="stop cleanly with a checkpoint after this many minutes (resume later)")
+    parser.add_argument("--device", help="cpu or cuda (default: cuda when available)")
+    parser.add_argument("--threads", type=parse_threads, help="torch threads (default: all cores)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def train_config(args: argparse.Namespace):
+    """The TrainConfig that ``mushroom-pose train`` runs with these arguments."""
+    from perception.synthetic.scene import SceneConfig
+    from perception.train import TrainConfig
+    from pipeline.flags import config_from_args
+
+    init = str(Path(args.init_weights).resolve()) if args.init_weights else None
+    return config_from_args(TrainConfig, args, scene=config_from_args(SceneConfig, args, prefix=SCENE),
+                            init_weights=init)
+
+
+def _check(args: argparse.Namespace) -> None:
+    """Refuse flags that parse one by one but not together."""
+    from perception.model import PRESETS as NETWORK_PRESETS
+
+    if args.network not in NETWORK_PRESETS:
+        raise CliError(f"unknown network {args.network!r}; choose one of {sorted(NETWORK_PRESETS)}")
+    if args.init_weights and not args.resume and not Path(args.init_weights).is_file():
+        raise CliError(f"--init: no weights file at {args.init_weights}")
+    ranges = {"--scale-jitter": args.scale_jitter, "--point-dropout": args.point_dropout,
+              "--spacing-jitter": args.scene_jitter, "--cap-scale": args.scene_scale}
+    for flag, (low, high) in ranges.items():
+        if low > high:
+            raise CliError(f"{flag} wants LOW HIGH with LOW <= HIGH, got {low} {high}")
+    if any(later <= earlier for earlier, later in zip(args.milestones, args.milestones[1:])):
+        raise CliError(f"--milestones must increase, got {' '.join(map(str, args.milestones))}")
+
+
+def run(args: argparse.Namespace) -> int:
+    from perception.train import TrainingError, train
+
+    _check(args)
+    config = train_config(args)
+    if config.averaging_start is not None and config.averaging_start >= config.iterations:
+        raise CliError(f"--average-from {args.average_from} leaves no iteration of {args.iterations} to average")
+    new_folder = not Path(args.out).exists()
+    run_dir = writable_dir(args.out)
+    if (run_dir / "checkpoint.pt").exists() and not args.resume:
+        raise CliError(f"{run_dir} already holds a checkpoint: add --resume to continue it, or pick a new --out")
+    torch_threads(args.threads)
+    try:
+        weights = train(config, run_dir, resume=args.resume, device=args.device, progress=not args.quiet,
+                        max_minutes=args.max_minutes)
+    except (ValueError, TrainingError) as error:
+        if new_folder and not any(run_dir.iterdir()):
+            run_dir.rmdir()
+        raise CliError(str(error)) from None
+    if weights is None:
+        print(f"stopped after {args.max_minutes} minutes with a checkpoint in {run_dir}: continue with the same "
+              "flags and --resume")
+    else:
+        print(f"weights: {weights}")
+    return 0
