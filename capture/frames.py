@@ -7,7 +7,6 @@ from dataclasses import dataclass
 import numpy as np
 
 # importable from here too for pipeline/cli.py, fusion/cloud.py and fusion/integrate.py
-from common.geometry import transform_points  # noqa: F401
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from capture.frames import DepthFrame, transform_points
+from capture.frames import DepthFrame
+from common.geometry import transform_points
 from fusion.bed import estimate_bed_frame
 from fusion.integrate import (CameraPoints, IntegrationConfig, Surface, VoxelMerge, back_project, integrate,
                               merge_back_projected)

@@ -12,7 +12,8 @@ import numpy as np
 import open3d as o3d
 import open3d.core as o3c
 
-from capture.frames import CameraIntrinsics, DepthFrame, backproject, transform_points
+from capture.frames import CameraIntrinsics, DepthFrame, backproject
+from common.geometry import transform_points
 
 MODES = ("tsdf", "merge")
 

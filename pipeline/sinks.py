@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from capture.frames import DepthFrame
-from common.files import write_atomically  # the CLI imports it from here too
+from common.files import write_atomically
 from pipeline.runner import Detection, FusedUnit, Sink
 
 CAP_COLOR = (255, 40, 200)

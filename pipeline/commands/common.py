@@ -60,7 +60,7 @@ def writable_file(path: str | None, inputs: tuple[str | None, ...] = (), suffix:
 def replace_file(path: Path, text: str) -> None:
     """Write through a temporary file renamed over ``path``: a failed write leaves an earlier file
     whole and no temporary file behind."""
-    from pipeline.sinks import write_atomically
+    from common.files import write_atomically
 
     try:
         write_atomically(path, text)

@@ -32,7 +32,7 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from capture.frames import transform_points
+    from common.geometry import transform_points
     from fusion.bed import estimate_bed_frame
     from perception.cap import detections_document
     from perception.detect import detect_points, log_rerun, transform_result

@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
     if not session.is_file():
         raise CliError(f"{session} does not exist" if not session.exists() else f"{session} is not a file")
     out_dir = writable_dir(args.out)
-    rrd = writable_file(args.rrd or str(out_dir / "replay.rrd"), inputs=(args.session,), suffix=".rrd")
+    rrd = writable_file(args.rrd or str(out_dir / "replay.rrd"), inputs=(str(session),), suffix=".rrd")
     if (out_dir / "replay.mcap").exists() and (out_dir / "replay.mcap").samefile(session):
         raise CliError(f"{session} is the replay's own output; pick another --out")
     if args.expected and not args.check:
