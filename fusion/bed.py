@@ -50,21 +50,25 @@ def estimate_bed_frame(points: np.ndarray, distance: float = 0.008, seed: int = 
 def up_side(normal: np.ndarray, heights: np.ndarray, distance: float, normals: np.ndarray | None,
             offset: float, centroid: np.ndarray) -> np.ndarray:
     """The bed normal turned to the side the bed was seen from, by the first of these that is clear:
-    the relief (caps stand higher above the soil than its cracks go below it: the 99.5th percentile
-    of the heights clearly beyond the 0.5th); the cloud's own normals (a sensor's normals face it: a
-    clear majority on one side; second, since files carry normals of either sign); the input origin
-    when it could be a camera (off the plane, within ``CAMERA_RANGE``); else the side of the input's +z."""
-    clear = 0.2
+    a relief that says it plainly (caps standing well above everything else: the 99.5th percentile of
+    the heights over 1.5 times as far from the plane as the 0.5th); the input origin when it could be
+    a camera (off the plane, within ``CAMERA_RANGE``); a milder relief (1.2 times); the cloud's own
+    normals (a sensor's normals face it: a clear majority on one side; files carry them of either
+    sign); else the side of the input's +z. Cloddy soil goes as deep below the plane as caps stand
+    above it, so on many beds the relief alone cannot tell."""
     low, high = np.percentile(heights, [0.5, 99.5])
     above, below = max(high, 0.0), max(-low, 0.0)
-    if max(above, below) > 2 * distance and max(above, below) > (1 + clear) * min(above, below):
+    relief = max(above, below) / max(min(above, below), 1e-9) if max(above, below) > 2 * distance else 1.0
+    if relief > 1.5:
+        return normal if above > below else -normal
+    if abs(offset) > 0.05 and np.linalg.norm(centroid) < CAMERA_RANGE:
+        return normal if offset > 0 else -normal
+    if relief > 1.2:
         return normal if above > below else -normal
     if normals is not None and len(normals):
         facing = np.sign(np.asarray(normals, np.float64) @ normal)
-        if abs(facing.sum()) > clear * len(facing):
+        if abs(facing.sum()) > 0.2 * len(facing):
             return normal if facing.sum() > 0 else -normal
-    if abs(offset) > 0.05 and np.linalg.norm(centroid) < CAMERA_RANGE:
-        return normal if offset > 0 else -normal
     return normal if normal[2] >= 0 else -normal
 
 

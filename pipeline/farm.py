@@ -73,6 +73,7 @@ def replay_session(job: FarmJob, session: str, index: int) -> SessionOutcome:
     from pipeline.replay import run_replay
 
     started = time.perf_counter()
+    threads = torch.get_num_threads()
     torch.set_num_threads(job.threads)
     try:
         model, _ = load_weights(Path(job.model))
@@ -87,6 +88,8 @@ def replay_session(job: FarmJob, session: str, index: int) -> SessionOutcome:
         if not isinstance(error, (ValueError, OSError)):
             line = f"{type(error).__name__}: {line} ({traceback.extract_tb(error.__traceback__)[-1].name})"
         return SessionOutcome(session, None, [], time.perf_counter() - started, line)
+    finally:
+        torch.set_num_threads(threads)
 
 
 def replay_sessions(sessions: list[Path], job: FarmJob, ray_address: str | None = None, use_ray: bool = False,

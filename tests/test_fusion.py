@@ -126,8 +126,8 @@ def test_turntable_estimation_recovers_the_axis(session):
 
 
 def test_turntable_estimation_from_nothing(session):
-    """No poses at all: consecutive views are seeded by FPFH + RANSAC (about 20 s, the longest test of
-    the default run; the users of a turntable with no encoder rely on it)."""
+    """No poses at all: consecutive views are seeded by FPFH + RANSAC (about 20 s, among the longest
+    tests of the default run; a turntable without an encoder is calibrated this way)."""
     unposed = [dataclasses.replace(f, T_world_camera=None, turntable_angle=None) for f in session.frames]
     check_axis(session, estimate_turntable(unposed, T_world_first=session.truth[0]))
 

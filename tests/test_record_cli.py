@@ -154,7 +154,6 @@ def test_depth_and_colour_of_different_sizes_are_refused():
                    color=np.zeros((24, 32, 3), np.uint8))
 
 
-@pytest.mark.slow
 def test_calibrate_recovers_the_virtual_turntable(tmp_path):
     from fusion.turntable import Rig
 
@@ -163,11 +162,13 @@ def test_calibrate_recovers_the_virtual_turntable(tmp_path):
     result = run("calibrate", "--session", session, "--out", tmp_path / "rig.json")
     assert result.returncode == 0, result.stderr
     rig = Rig.load(tmp_path / "rig.json")
-    # the virtual rig turns about +z through the bed centre (pipeline.sources.VirtualBedRig)
+    # the virtual rig turns about +z through the bed centre (pipeline.sources.VirtualBedRig), 45 deg a view.
+    # Measured on sessions of beds 0-4 (record --seed): axis 0.004-0.019 deg off, through 0.02-0.15 mm of
+    # the centre, step off by 0.0003-0.0067 deg; bounds twice the worst
     axis = np.asarray(rig.turntable.axis_direction) * np.sign(rig.turntable.axis_direction[2])
-    assert np.degrees(np.arccos(min(1.0, axis[2]))) < 1.0
-    assert np.linalg.norm(np.asarray(rig.turntable.axis_point)[:2]) < 0.005
-    assert abs(np.degrees(rig.angle_step) - 45.0) < 1.0
+    assert np.degrees(np.arccos(min(1.0, axis[2]))) < 0.04
+    assert np.linalg.norm(np.asarray(rig.turntable.axis_point)[:2]) < 0.0003
+    assert abs(np.degrees(rig.angle_step) - 45.0) < 0.015
 
 
 def test_calibrate_rejects_a_file_that_is_not_mcap(tmp_path):
