@@ -23,7 +23,7 @@ import torch.nn.functional as F
 from torch.optim.swa_utils import AveragedModel
 from tqdm import tqdm
 
-from common.files import atomic_path
+from common.files import atomic_path, write_atomically
 from perception.cap import cap_rotation
 from perception.encoding import encode
 from perception.model import (INFERENCE_ZOOM, LENGTH_UNIT, PRESETS as NETWORK_PRESETS, MushroomNet,
@@ -388,6 +388,7 @@ class TrainingRun:
             self.averaged.load_state_dict(state["average"])
         self.start, self.elapsed_before, self.saved_at = state["iteration"], state["elapsed_s"], state["iteration"]
         self.init = state.get("init")
+        _trim_history(self.run_dir / "history.csv", self.start)
 
     def iterate(self, end: int, progress: bool, rerun: bool, max_minutes: float | None) -> int:
         """Train up to iteration ``end``, or until ``max_minutes`` have passed, with a row of history.csv
@@ -518,6 +519,18 @@ class TrainingRun:
         kept = f"the checkpoint in {self.run_dir} is from iteration {self.saved_at}" if self.saved_at is not None \
             else "no checkpoint was kept"
         return f"start a new run with a smaller learning rate or loss weights ({kept})"
+
+
+def _trim_history(path: Path, iteration: int) -> None:
+    """history.csv as the checkpoint of ``iteration`` left it: rows an interrupted run wrote after its
+    last checkpoint are dropped, since the resumed run trains those iterations again."""
+    if not path.is_file():
+        return
+    lines = path.read_text().splitlines(keepends=True)
+    kept = lines[:1] + [line for line in lines[1:] if line.split(",", 1)[0].isdigit()
+                        and int(line.split(",", 1)[0]) <= iteration]
+    if len(kept) < len(lines):
+        write_atomically(path, "".join(kept))
 
 
 def _validation_scenes(config: TrainConfig):

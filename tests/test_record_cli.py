@@ -175,3 +175,29 @@ def test_calibrate_rejects_a_file_that_is_not_mcap(tmp_path):
     bogus = tmp_path / "notes.mcap"
     bogus.write_text("hello")
     one_line_error(run("calibrate", "--session", bogus, "--out", tmp_path / "rig.json"), "not an MCAP file")
+
+
+def test_sigterm_stops_record_with_exit_143_and_a_whole_recording(tmp_path):
+    """A supervisor stopping ``record`` (SIGTERM) gets 143, not 0, and the frames so far in a valid MCAP."""
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    out = tmp_path / "r.mcap"
+    partial = tmp_path / "r.mcap.partial"
+    process = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "record", "--camera", "virtual", "--views", "600",
+                                "--out", str(out), "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True, cwd=Path(__file__).resolve().parents[1])
+    deadline = time.monotonic() + 90
+    while not (partial.exists() and partial.stat().st_size > 1_000_000):  # some frames recorded
+        assert process.poll() is None and time.monotonic() < deadline, "record ended or wrote too little"
+        time.sleep(0.2)
+    process.send_signal(signal.SIGTERM)
+    _, stderr = process.communicate(timeout=60)
+    assert process.returncode == 143
+    assert stderr.startswith("stopped by SIGTERM: recorded ") and len(stderr.strip().splitlines()) == 1
+    with McapSource(out) as replay:
+        assert sum(1 for _ in replay) > 0
+    assert not partial.exists()

@@ -168,6 +168,21 @@ def test_resume_continues_exactly(tmp_path, tiny_network):
     assert [line.split(",")[0] for line in history[1:]] == ["1", "2", "3", "4"]
 
 
+def test_resume_after_an_interrupt_keeps_one_history_row_per_iteration(tmp_path, tiny_network):
+    """A run killed between checkpoints has written rows the resumed run trains again: history.csv
+    keeps each iteration once, the resumed run's row (the interrupted run's rows are stood in for by
+    rows of a marked learning rate)."""
+    config = TrainConfig(iterations=4, network=tiny_network, checkpoint_every=2, validation_scenes=0,
+                         scene=SMALL_SCENES, queue_size=2)
+    train(config, tmp_path, progress=False, rerun=False, stop_at=2)
+    with open(tmp_path / "history.csv", "a") as history:
+        history.write("3,-1,0,0,0,0,0,,,,\n")  # written after checkpoint 2 by a run that then died
+    train(config, tmp_path, resume=True, progress=False, rerun=False)
+    rows = [line.split(",") for line in (tmp_path / "history.csv").read_text().splitlines()[1:]]
+    assert [row[0] for row in rows] == ["1", "2", "3", "4"]
+    assert all(row[1] != "-1" for row in rows)
+
+
 def test_resume_with_other_flags_is_refused(tmp_path, tiny_network):
     config = TrainConfig(iterations=2, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
     train(config, tmp_path, progress=False, rerun=False, stop_at=1)

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
-from pipeline.commands.common import CAMERAS, CliError, parse_seed, positive, writable_file
+from pipeline.commands.common import CAMERAS, STOP_EXIT, CliError, parse_seed, positive, writable_file
 
 NAME = "record"
 HELP = "record a depth camera session to MCAP"
@@ -43,6 +44,10 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"{camera}{error}{kept}") from None
     except (ImportError, FileExistsError) as error:
         raise CliError(str(error)) from None
-    print(f"recorded {summary.frames} frames in {summary.seconds:.1f} s ({summary.stopped_by}) -> {out} "
-          f"({summary.bytes / 1e6:.1f} MB)")
+    line = f"recorded {summary.frames} frames in {summary.seconds:.1f} s ({summary.stopped_by}) -> {out} " \
+           f"({summary.bytes / 1e6:.1f} MB)"
+    if summary.stopped_by in STOP_EXIT:  # stopped, not done: a supervisor must be able to tell
+        print(f"stopped by {summary.stopped_by}: {line}", file=sys.stderr)
+        return STOP_EXIT[summary.stopped_by]
+    print(line)
     return 0
