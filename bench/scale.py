@@ -5,7 +5,7 @@ SESSIONS...`` does (pipeline/farm.py): one after another in this process, then a
 Ray (``ray.init``), then on a cluster started here with ``ray start`` (a head on 127.0.0.1 and worker
 processes joining it, stopped at the end). Prints the wall time of each and their ratios, and the cost
 model per session (seconds, MB read and written) with what N machines do for a farm of B beds a day.
-Usage: python bench/scale.py [--sessions 20] [--workers 2] [--skip-cluster]
+Usage: python bench/scale.py [--session-count 20] [--workers 2] [--skip-cluster]
 """
 
 import sys
@@ -80,14 +80,14 @@ def megabytes(paths) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sessions", type=int, default=20)
+    parser.add_argument("--session-count", type=int, default=20)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--skip-cluster", action="store_true")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="bench-scale-") as scratch:
         folder = Path(scratch)
         (folder / "in").mkdir()
-        sessions = make_sessions(folder / "in", args.sessions)
+        sessions = make_sessions(folder / "in", args.session_count)
         walls = {}
         walls["in this process"], outcomes = run(sessions, folder / "local", use_ray=False)
         walls["local Ray"], _ = run(sessions, folder / "ray", use_ray=True)
@@ -98,7 +98,7 @@ def main() -> None:
             finally:
                 stop_cluster()
         base = walls["in this process"]
-        print(f"{args.sessions} sessions replayed with --check, {os.cpu_count()} cores:")
+        print(f"{args.session_count} sessions replayed with --check, {os.cpu_count()} cores:")
         for name, wall in walls.items():
             print(f"  {name:<28} {wall:7.1f} s  ({wall / base:.2f}x the one-process run)")
         seconds = np.array([o.seconds for o in outcomes])

@@ -285,12 +285,19 @@ def evaluate_on_scenes(model: MushroomNet, scenes, methods=("meanshift", "dbscan
 def scene_caps(model: MushroomNet, scene, methods, height: str, axis: str, zoom: float | None):
     """A synthetic scene's caps per clustering method, and its visible ground truth (SceneCaps)."""
     from perception.evaluate import SceneCaps
-    from perception.synthetic.dataset import ground_truth_mask
 
     prediction = predict(model, scene.points, zoom=zoom)
     found = {}
     for method in methods:
         _, fit = find_caps(prediction, model.config.voxel, ClusterConfig(method=method), height, axis)
         found[method] = SceneCaps(fit.centers, fit.rotations, fit.scales, fit.scores)
+    return found, visible_truth(scene)
+
+
+def visible_truth(scene):
+    """A synthetic scene's caps that count as ground truth (``ground_truth_mask``), as SceneCaps."""
+    from perception.evaluate import SceneCaps
+    from perception.synthetic.dataset import ground_truth_mask
+
     visible = ground_truth_mask(scene)
-    return found, SceneCaps(scene.centers[visible], scene.rotations[visible], scene.scales[visible])
+    return SceneCaps(scene.centers[visible], scene.rotations[visible], scene.scales[visible])
