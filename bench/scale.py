@@ -5,7 +5,9 @@ SESSIONS...`` does (pipeline/farm.py): one after another in this process, then a
 Ray (``ray.init``), then on a cluster started here with ``ray start`` (a head on 127.0.0.1 and worker
 processes joining it, stopped at the end). Prints the wall time of each and their ratios, and the cost
 model per session (seconds, MB read and written) with what N machines do for a farm of B beds a day.
-Usage: python bench/scale.py [--session-count 20] [--workers 2] [--skip-cluster]
+Then a short training run (the default recipe) the same three ways: its beds made in a worker process,
+as Ray tasks, and on the cluster's workers; prints the wall times and whether the weights are identical.
+Usage: python bench/scale.py [--session-count 20] [--workers 2] [--train-iterations 20] [--skip-cluster]
 """
 
 import sys
@@ -22,6 +24,7 @@ import tempfile  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
+import torch  # noqa: E402
 
 from perception.detect import DEFAULT_WEIGHTS  # noqa: E402
 from pipeline.check import Tolerances  # noqa: E402
@@ -58,6 +61,24 @@ def run(sessions: list[Path], out: Path, use_ray: bool, address: str | None = No
     return wall, outcomes
 
 
+def train_run(folder: Path, iterations: int, address: str | None) -> tuple[float, dict]:
+    """Wall time and final weights of a short run of the default recipe, its beds made as ``address`` says
+    (None: a worker process; "local" or a cluster's address: Ray tasks)."""
+    from perception.train import TrainConfig, load_weights, train
+
+    config = TrainConfig(iterations=iterations, checkpoint_every=iterations, validation_scenes=0)
+    started = time.perf_counter()
+    weights = train(config, folder, progress=False, rerun=False, ray_address=address)
+    return time.perf_counter() - started, load_weights(weights)[0].state_dict()
+
+
+def print_walls(title: str, walls: dict[str, float]) -> None:
+    base = next(iter(walls.values()))
+    print(title)
+    for name, wall in walls.items():
+        print(f"  {name:<28} {wall:7.1f} s  ({wall / base:.2f}x the one-process run)")
+
+
 def start_cluster(workers: int) -> str:
     """A head with no CPUs of its own and ``workers`` one-CPU worker processes joining it."""
     ray = shutil.which("ray", path=str(Path(sys.executable).parent)) or "ray"
@@ -82,25 +103,29 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--session-count", type=int, default=20)
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--train-iterations", type=int, default=20, help="0: no training runs")
     parser.add_argument("--skip-cluster", action="store_true")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="bench-scale-") as scratch:
         folder = Path(scratch)
         (folder / "in").mkdir()
         sessions = make_sessions(folder / "in", args.session_count)
-        walls = {}
+        walls, train_walls, weights = {}, {}, {}
         walls["in this process"], outcomes = run(sessions, folder / "local", use_ray=False)
         walls["local Ray"], _ = run(sessions, folder / "ray", use_ray=True)
-        if not args.skip_cluster:
-            try:
-                address = start_cluster(args.workers)
-                walls[f"local cluster, {args.workers} workers"], _ = run(sessions, folder / "cluster", True, address)
-            finally:
+        places = {"in this process": None, "local Ray": "local"}
+        try:
+            if not args.skip_cluster:
+                cluster = f"local cluster, {args.workers} workers"
+                places[cluster] = start_cluster(args.workers)
+                walls[cluster], _ = run(sessions, folder / "cluster", True, places[cluster])
+            for name, place in places.items() if args.train_iterations else ():
+                train_walls[name], weights[name] = train_run(folder / f"train-{len(weights)}", args.train_iterations,
+                                                             place)
+        finally:
+            if not args.skip_cluster:
                 stop_cluster()
-        base = walls["in this process"]
-        print(f"{args.session_count} sessions replayed with --check, {os.cpu_count()} cores:")
-        for name, wall in walls.items():
-            print(f"  {name:<28} {wall:7.1f} s  ({wall / base:.2f}x the one-process run)")
+        print_walls(f"{args.session_count} sessions replayed with --check, {os.cpu_count()} cores:", walls)
         seconds = np.array([o.seconds for o in outcomes])
         read = megabytes(s.resolve() for s in sessions) / len(sessions)
         written = megabytes((folder / "local").rglob("*")) / len(sessions)
@@ -113,6 +138,12 @@ def main() -> None:
             cores = beds / per_core_hour
             print(f"  B = {beds:>5}: {cores:6.1f} cores, {int(np.ceil(cores / 8)):>3} machines of 8 cores, "
                   f"{beds * (read + written) / 1e3:.1f} GB moved")
+        if train_walls:
+            print_walls(f"training, {args.train_iterations} iterations of the default recipe, its beds made:",
+                        train_walls)
+            first = next(iter(weights.values()))
+            same = all(all(torch.equal(first[key], other[key]) for key in first) for other in weights.values())
+            print(f"  the weights are {'identical' if same else 'NOT identical'} in all {len(weights)} runs")
 
 
 if __name__ == "__main__":

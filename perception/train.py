@@ -1,7 +1,8 @@
 """Training on a fresh synthetic bed per iteration (paper Sec. 4), on CPU or GPU, resumable exactly.
 
 Scene generation runs in a worker process that feeds a bounded queue, so the network and the
-generator keep both cores busy. Iteration i always trains on the scene and augmentation drawn from
+generator keep both cores busy; with Ray (``ray_address``) it runs as Ray tasks, a bounded window of
+them ahead of the trainer, on a local Ray or a cluster's workers. Iteration i always trains on the scene and augmentation drawn from
 seed (run seed, i), and a checkpoint holds model, optimiser, schedule and torch RNG state: a
 resumed run continues exactly where it stopped.
 """
@@ -191,34 +192,80 @@ SAMPLE_PATIENCE_S = 600.0
 """A scene takes well under a second; a generator silent this long is stuck."""
 
 
-def _next_sample(samples: mp.Queue, producer: mp.Process, iteration: int) -> dict:
-    """The producer's next sample; an error, not a wait without end, if the producer died or hangs."""
-    waited = 0.0
-    while True:
-        try:
-            return samples.get(timeout=5)
-        except queues.Empty:
-            waited += 5
-            if not producer.is_alive():
-                raise TrainingError(f"the scene generator stopped (exit code {producer.exitcode}) before "
-                                    f"iteration {iteration + 1}; its error is printed above") from None
-            if waited >= SAMPLE_PATIENCE_S:
-                raise TrainingError(f"no scene for iteration {iteration + 1} in {waited:.0f} s: the scene "
-                                    "generator is stuck") from None
+def training_sample(config: TrainConfig, network: NetworkConfig, iteration: int) -> dict[str, np.ndarray]:
+    """Network input and voxel targets of iteration ``iteration``: what the trainer's step consumes."""
+    sample = augmented_sample(config, iteration)
+    coords, existence, residual, orientation, centroids, cap_weight = voxel_targets(sample, network.voxel)
+    if network.encoding != "implicit":
+        residual, orientation = explicit_targets(network.encoding, sample, network.voxel, existence, residual,
+                                                 orientation, centroids)
+    return {"iteration": iteration, "coords": coords.numpy(), "features": voxel_features(network, centroids),
+            "existence": existence.numpy(), "residual": residual.numpy(), "orientation": orientation.numpy(),
+            "cap_weight": cap_weight.numpy()}
 
 
 def _producer(config: TrainConfig, network: NetworkConfig, start: int, stop: int, queue: mp.Queue) -> None:
-    """Worker process: scenes, targets and network input for iterations ``start`` to ``stop``, in order."""
+    """Worker process: the samples of iterations ``start`` to ``stop``, in order, into ``queue``."""
     torch.set_num_threads(1)
     for iteration in range(start, stop):
-        sample = augmented_sample(config, iteration)
-        coords, existence, residual, orientation, centroids, cap_weight = voxel_targets(sample, network.voxel)
-        if network.encoding != "implicit":
-            residual, orientation = explicit_targets(network.encoding, sample, network.voxel, existence, residual,
-                                                     orientation, centroids)
-        queue.put({"iteration": iteration, "coords": coords.numpy(), "features": voxel_features(network, centroids),
-                   "existence": existence.numpy(), "residual": residual.numpy(), "orientation": orientation.numpy(),
-                   "cap_weight": cap_weight.numpy()})
+        queue.put(training_sample(config, network, iteration))
+
+
+def _ray_training_sample(config: TrainConfig, network: NetworkConfig, iteration: int) -> dict[str, np.ndarray]:
+    """``training_sample`` as a one-CPU Ray task."""
+    torch.set_num_threads(1)
+    return training_sample(config, network, iteration)
+
+
+class ProcessScenes:
+    """The samples of iterations ``start`` to ``stop`` from a worker process through a bounded queue."""
+
+    def __init__(self, config: TrainConfig, network: NetworkConfig, start: int, stop: int) -> None:
+        context = mp.get_context("fork")
+        self._queue = context.Queue(maxsize=config.queue_size)
+        self._process = context.Process(target=_producer, daemon=True,
+                                        args=(config, network, start, stop, self._queue))
+        self._process.start()
+
+    def next(self, iteration: int) -> dict:
+        """The next sample; an error, not a wait without end, if the producer died or hangs."""
+        waited = 0.0
+        while True:
+            try:
+                return self._queue.get(timeout=5)
+            except queues.Empty:
+                waited += 5
+                if not self._process.is_alive():
+                    raise TrainingError(f"the scene generator stopped (exit code {self._process.exitcode}) before "
+                                        f"iteration {iteration + 1}; its error is printed above") from None
+                if waited >= SAMPLE_PATIENCE_S:
+                    raise TrainingError(f"no scene for iteration {iteration + 1} in {waited:.0f} s: the scene "
+                                        "generator is stuck") from None
+
+    def close(self) -> None:
+        self._process.terminate()
+
+
+class RayScenes:
+    """The samples of iterations ``start`` to ``stop`` as Ray tasks, at most ``config.queue_size`` ahead of
+    the trainer, on a local Ray (``address`` None) or the cluster at ``address``."""
+
+    def __init__(self, config: TrainConfig, network: NetworkConfig, start: int, stop: int,
+                 address: str | None) -> None:
+        from common.distributed import ray_map
+
+        self._samples = ray_map(_ray_training_sample, [(i,) for i in range(start, stop)], address,
+                                in_flight=config.queue_size, shared=(config, network))
+
+    def next(self, iteration: int) -> dict:
+        try:
+            return next(self._samples)
+        except Exception as error:  # a worker's error, or the cluster gone: one line, not Ray's traceback
+            first = str(error).strip().splitlines()[-1] if str(error).strip() else type(error).__name__
+            raise TrainingError(f"the Ray scene generator failed before iteration {iteration + 1}: {first}") from None
+
+    def close(self) -> None:
+        self._samples.close()
 
 
 def voxel_targets(sample: dict, voxel: float):
@@ -322,10 +369,12 @@ HISTORY_COLUMNS = ("iteration", "lr", *LOSS_TERMS, "seconds", *(f"val_{name}" fo
 
 def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str | None = None,
           progress: bool = True, rerun: bool = True, stop_at: int | None = None,
-          max_minutes: float | None = None) -> Path | None:
+          max_minutes: float | None = None, ray_address: str | None = None) -> Path | None:
     """Train (or continue training) into ``run_dir``; returns the final weights, or None when the run
-    stopped early (at iteration ``stop_at`` or after ``max_minutes``) with a checkpoint to resume."""
-    run = TrainingRun(config, run_dir, _resolve_device(device), resume)
+    stopped early (at iteration ``stop_at`` or after ``max_minutes``) with a checkpoint to resume. With
+    ``ray_address`` ("local", or a cluster's address) the scenes are made as Ray tasks: the same scenes,
+    so the same run."""
+    run = TrainingRun(config, run_dir, _resolve_device(device), resume, ray_address)
     end = config.iterations if stop_at is None else min(stop_at, config.iterations)
     reached = run.iterate(end, progress=progress, rerun=rerun, max_minutes=max_minutes)
     return run.export() if reached == config.iterations else None
@@ -336,8 +385,9 @@ class TrainingRun:
     mean, set up afresh (random or ``config.init_weights``) or resumed from the folder's checkpoint.
     ``iterate`` trains and checkpoints, ``export`` writes model.pt from the last checkpoint."""
 
-    def __init__(self, config: TrainConfig, run_dir: Path, device: str, resume: bool) -> None:
-        self.config, self.run_dir, self.device = config, run_dir, device
+    def __init__(self, config: TrainConfig, run_dir: Path, device: str, resume: bool,
+                 ray_address: str | None = None) -> None:
+        self.config, self.run_dir, self.device, self.ray_address = config, run_dir, device, ray_address
         self.checkpoint_path = run_dir / "checkpoint.pt"
         if resume and not self.checkpoint_path.is_file():
             raise ValueError(f"no checkpoint to resume in {run_dir}: check --out, or drop --resume to start a new run")
@@ -396,7 +446,7 @@ class TrainingRun:
         the iteration reached."""
         validation = _validation_scenes(self.config)
         rec = self._rerun_stream() if rerun else None
-        producer, samples = self._start_scene_generator()
+        scenes = self._start_scene_generator()
         history = open(self.run_dir / "history.csv", "a", newline="")
         writer = csv.writer(history)
         if self.start == 0:
@@ -411,7 +461,7 @@ class TrainingRun:
                 if deadline is not None and time.perf_counter() > deadline:
                     end = iteration
                     break
-                losses = self._step(_next_sample(samples, producer, iteration), iteration)
+                losses = self._step(scenes.next(iteration), iteration)
                 row = [iteration + 1, self.scheduler.get_last_lr()[0], *(losses[name] for name in LOSS_TERMS),
                        round(self._elapsed(), 1)]
                 _log_losses(rec, iteration + 1, losses)
@@ -427,7 +477,7 @@ class TrainingRun:
         finally:
             bar.close()
             history.close()
-            producer.terminate()
+            scenes.close()
             if rec is not None:
                 rec.flush()
         return end
@@ -438,19 +488,19 @@ class TrainingRun:
         rec.save(self.run_dir / f"train_from_{self.start:06d}.rrd")
         return rec
 
-    def _start_scene_generator(self) -> tuple[mp.Process, mp.Queue]:
-        """A worker process that fills a bounded queue with the samples of the iterations to come."""
-        context = mp.get_context("fork")
-        samples = context.Queue(maxsize=self.config.queue_size)
-        producer = context.Process(target=_producer, daemon=True,
-                                   args=(self.config, self.network_config, self.start, self.config.iterations, samples))
-        producer.start()
-        return producer, samples
+    def _start_scene_generator(self) -> ProcessScenes | RayScenes:
+        """The samples of the iterations to come: a worker process, or Ray tasks with ``ray_address``."""
+        if self.ray_address is None:
+            return ProcessScenes(self.config, self.network_config, self.start, self.config.iterations)
+        address = None if self.ray_address == "local" else self.ray_address
+        return RayScenes(self.config, self.network_config, self.start, self.config.iterations, address)
 
     def _step(self, sample: dict, iteration: int) -> dict[str, float]:
         """One optimiser step on iteration ``iteration``'s sample; returns the loss terms."""
         assert sample["iteration"] == iteration
-        tensors = {k: torch.from_numpy(v).to(self.device) for k, v in sample.items() if k != "iteration"}
+        # a sample from Ray's object store is read-only: copied then, used in place otherwise
+        tensors = {k: torch.from_numpy(np.require(v, requirements="W")).to(self.device)
+                   for k, v in sample.items() if k != "iteration"}
         output = self.model(SparseTensor(tensors["features"], tensors["coords"]))
         terms = loss_terms(output, tensors["existence"], tensors["residual"], tensors["orientation"], self.config,
                            tensors["cap_weight"])

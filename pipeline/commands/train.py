@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from pipeline.commands.common import (CliError, at_most, non_negative, parse_learning_rate, parse_run_fraction,
-                                      parse_seed, parse_spacing, parse_threads, parse_zoom, positive, torch_threads,
-                                      writable_dir)
+from pipeline.commands.common import (CliError, add_ray_flag, at_most, non_negative, parse_learning_rate,
+                                      parse_run_fraction, parse_seed, parse_spacing, parse_threads, parse_zoom, positive,
+                                      ray_options, torch_threads, writable_dir)
 
 TRAIN_CONFIG = "perception.train:TrainConfig"
 SCENE_CONFIG = "perception.synthetic.scene:SceneConfig"
@@ -65,6 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", help="cpu or cuda (default: cuda when available)")
     parser.add_argument("--threads", type=parse_threads, help="torch threads (default: all cores)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_ray_flag(parser, "make the training beds as Ray tasks (the same beds, so the same run)")
 
 
 def train_config(args: argparse.Namespace):
@@ -106,10 +107,11 @@ def run(args: argparse.Namespace) -> int:
     run_dir = writable_dir(args.out)
     if (run_dir / "checkpoint.pt").exists() and not args.resume:
         raise CliError(f"{run_dir} already holds a checkpoint: add --resume to continue it, or pick a new --out")
+    ray_options(args)  # Ray installed, when asked for
     torch_threads(args.threads)
     try:
         weights = train(config, run_dir, resume=args.resume, device=args.device, progress=not args.quiet,
-                        max_minutes=args.max_minutes)
+                        max_minutes=args.max_minutes, ray_address=args.ray)
     except (ValueError, TrainingError) as error:
         if new_folder and not any(run_dir.iterdir()):
             run_dir.rmdir()
