@@ -20,7 +20,8 @@ import torch  # noqa: E402
 
 from perception.cap import CAP_RADIUS_AT_UNIT_SCALE  # noqa: E402
 from perception.detect import DEFAULT_WEIGHTS, find_caps, predict  # noqa: E402
-from perception.evaluate import SceneCaps, evaluate  # noqa: E402
+from perception.cap import Caps  # noqa: E402
+from perception.evaluate import evaluate  # noqa: E402
 from perception.synthetic.dataset import ground_truth_mask  # noqa: E402
 from perception.synthetic.scene import SceneConfig, generate_scene  # noqa: E402
 from perception.train import load_weights  # noqa: E402
@@ -33,9 +34,9 @@ def score(model, scenes) -> tuple[float, float, int]:
     preds, gts = [], []
     for scene in scenes:
         _, fit = find_caps(predict(model, scene.points), model.config.voxel)
-        preds.append(SceneCaps(fit.centers, fit.rotations, fit.scales, fit.scores))
+        preds.append(fit)
         visible = ground_truth_mask(scene)
-        gts.append(SceneCaps(scene.centers[visible], scene.rotations[visible], scene.scales[visible]))
+        gts.append(Caps(scene.centers[visible], scene.rotations[visible], scene.scales[visible]))
     result = evaluate(preds, gts)
     return result.ap25, result.ap50, result.n_gt
 

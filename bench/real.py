@@ -298,7 +298,7 @@ def stage_seconds(ply: Path, detect_args: list[str]) -> tuple[dict, np.ndarray, 
     for name in ("network", "instances", "pose"):
         seconds[name] = result.timings_ms.get(name, math.nan) / 1000
     result = transform_result(result, T_input_bed, "input")
-    return seconds, T_input_bed, len(result.mushrooms)
+    return seconds, T_input_bed, len(result.caps)
 
 
 # ---- top view

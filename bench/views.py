@@ -24,7 +24,8 @@ import torch  # noqa: E402
 
 from capture.source import Source  # noqa: E402
 from perception.detect import DEFAULT_WEIGHTS  # noqa: E402
-from perception.evaluate import SceneCaps, evaluate  # noqa: E402
+from perception.cap import Caps  # noqa: E402
+from perception.evaluate import evaluate  # noqa: E402
 from perception.train import load_weights  # noqa: E402
 from pipeline.process import reuse_freed_memory  # noqa: E402
 from pipeline.runner import RunConfig, Runner  # noqa: E402
@@ -81,12 +82,11 @@ def main() -> None:
             summary = Runner(Frames([frames[k] for k in indices]), model, RunConfig(), []).run()
             fused, result = summary.last_unit.cloud, summary.last_detection.result
             seen = visible_caps(bed, fused.world_points)
-            preds[name].append(SceneCaps(result.fit.centers, result.fit.rotations, result.fit.scales,
-                                         result.fit.scores))
-            gts[name].append(SceneCaps(bed.centers[seen], bed.rotations[seen], bed.scales[seen]))
+            preds[name].append(result.caps)
+            gts[name].append(Caps(bed.centers[seen], bed.rotations[seen], bed.scales[seen]))
             points[name].append(len(fused))
             print(f"bed {seed} {name}: {len(fused)} points, {len(seen)}/{len(bed.centers)} caps seen, "
-                  f"{len(result.mushrooms)} detected, {time.perf_counter() - start:.1f} s", flush=True)
+                  f"{len(result.caps)} detected, {time.perf_counter() - start:.1f} s", flush=True)
     iterations = meta.get("total_iterations", meta.get("iterations", "?"))
     print(f"\nmodel: {args.model} ({iterations} iterations); {args.beds} beds "
           f"(seeds 100-{99 + args.beds}); MeanShift\n")

@@ -17,8 +17,7 @@ import numpy as np
 import open3d as o3d
 import open3d.pipelines.registration as reg
 
-from perception.cap import CAP_HEIGHT_RATIO
-from perception.evaluate import SceneCaps
+from perception.cap import CAP_HEIGHT_RATIO, Caps
 
 TEMPLATE_RADIUS = 0.02
 """Metres: the template cap's s, the synthetic beds' unscaled cap (40 mm across)."""
@@ -81,10 +80,10 @@ def cap_of_transform(transform: np.ndarray) -> tuple[np.ndarray, np.ndarray, flo
     return transform[:3, 3].copy(), transform[:3, :3] / scale, scale * TEMPLATE_RADIUS
 
 
-def caps_of(centers: list, rotations: list, radii: list, scores: list) -> SceneCaps:
-    """SceneCaps of caps given by centre, rotation and s (semi-axes s, s, 2s/3)."""
+def caps_of(centers: list, rotations: list, radii: list, scores: list) -> Caps:
+    """Caps given by centre, rotation and s (semi-axes s, s, 2s/3)."""
     radii = np.asarray(radii, np.float64).reshape(-1)
-    return SceneCaps(np.asarray(centers, np.float64).reshape(-1, 3), np.asarray(rotations, np.float64).reshape(-1, 3, 3),
+    return Caps(np.asarray(centers, np.float64).reshape(-1, 3), np.asarray(rotations, np.float64).reshape(-1, 3, 3),
                      np.stack([radii, radii, CAP_HEIGHT_RATIO * radii], 1), np.asarray(scores, np.float64))
 
 
@@ -159,7 +158,7 @@ def _fit_scale(template: o3d.geometry.PointCloud, points: np.ndarray, rigid: np.
 
 
 def match_templates(points: np.ndarray, config: TemplateMatching = TemplateMatching(), model=None,
-                    spacing: float = 0.003) -> SceneCaps:
+                    spacing: float = 0.003) -> Caps:
     """Caps found by repeated RANSAC template matching (module docstring) in a bed-frame cloud."""
     template, template_normals = template_points(spacing)
     template_at, template_features = _features(template, template_normals, config, model, spacing)
@@ -196,8 +195,8 @@ def match_templates(points: np.ndarray, config: TemplateMatching = TemplateMatch
 
 
 def refine_by_icp(fit, cap_points: list[np.ndarray], distance: float = 0.005, iterations: int = 30,
-                  spacing: float = 0.003) -> SceneCaps:
-    """Our caps (a ``CapFit``) after Open3D point-to-point ICP with scaling of the template, started
+                  spacing: float = 0.003) -> Caps:
+    """Our caps  after Open3D point-to-point ICP with scaling of the template, started
     at each cap's pose and size, onto the cap's own points (``cap_points[k]``)."""
     template = _cloud(template_points(spacing)[0])
     criteria = reg.ICPConvergenceCriteria(1e-6, 1e-6, iterations)

@@ -7,9 +7,11 @@ centre of its wide base. ``R`` maps the cap frame to the bed frame, R = R_y(thet
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace
 
 import numpy as np
+
+from common.geometry import transform_points
 
 CAP_RADIUS_AT_UNIT_SCALE = 0.020
 """Cap radius in metres of the template at scale s = 1 (a 40 mm cap)."""
@@ -117,47 +119,76 @@ def cap_box(center: np.ndarray, rotation: np.ndarray, scales: np.ndarray) -> Ori
 
 
 @dataclass(frozen=True)
-class Mushroom:
-    """One detected (or true) cap in a named frame; ``scales`` = (s, s, s_z) in metres."""
+class Caps:
+    """The caps of one bed in one frame, one row each: what detect finds, eval scores, the sinks show and
+    the detection JSON holds (DESIGN.md section 3). Cap k's id is k.
 
-    id: int
-    center: np.ndarray
-    rotation: np.ndarray
+    ``scores`` is None for ground truth (every cap counts alike); ``members`` is how many of the points
+    the caps were found from belong to each (the network's voxels in ``find_caps``, the input cloud's
+    points in detect's result), None when unknown."""
+
+    centers: np.ndarray
+    """(K, 3) metres: the centre of each cap's wide base."""
+    rotations: np.ndarray
+    """(K, 3, 3): cap frame to this frame; the cap's axis (up-vector) is the third column."""
     scales: np.ndarray
-    score: float = 1.0
-    point_indices: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    """(K, 3) semi-axes (s_x, s_y, s_z) in metres; detections have s_x = s_y = s, the radius."""
+    scores: np.ndarray | None = None
+    members: np.ndarray | None = None
 
-    @property
-    def axis(self) -> np.ndarray:
-        return self.rotation[:, 2]
-
-    @property
-    def radius(self) -> float:
-        return float(self.scales[:2].mean())
-
-    def to_json(self) -> dict:
-        return {
-            "id": int(self.id),
-            "center": [float(v) for v in self.center],
-            "axis": [float(v) for v in self.axis],
-            "rotation": [[float(v) for v in row] for row in self.rotation],
-            "radius": self.radius,
-            "height": float(self.scales[2]),
-            "cap_diameter_mm": 2000.0 * self.radius,
-            "score": float(self.score),
-            "num_points": int(len(self.point_indices)),
-        }
+    def __len__(self) -> int:
+        return len(self.centers)
 
     @staticmethod
-    def from_json(item: dict) -> "Mushroom":
-        radius = float(item["radius"])
-        return Mushroom(int(item["id"]), np.asarray(item["center"], np.float64),
-                        np.asarray(item["rotation"], np.float64),
-                        np.array([radius, radius, float(item["height"])]), float(item["score"]),
-                        np.zeros(int(item.get("num_points", 0)), np.int64))
+    def none() -> "Caps":
+        return Caps(np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64))
 
+    @property
+    def axes(self) -> np.ndarray:
+        return self.rotations[:, :, 2]
 
-def detections_document(mushrooms: list[Mushroom], frame: str) -> dict:
-    """The detection document of DESIGN.md section 3, as a dict (what the JSON file and the MCAP hold)."""
-    return {"frame": frame, "units": "m", "mushrooms": [m.to_json() for m in mushrooms]}
+    @property
+    def radii(self) -> np.ndarray:
+        return self.scales[:, :2].mean(axis=1)
 
+    def score_array(self) -> np.ndarray:
+        """The scores, or ones for ground truth."""
+        return np.ones(len(self)) if self.scores is None else np.asarray(self.scores, np.float64)
+
+    def select(self, index) -> "Caps":
+        """The caps at ``index`` (a mask or indices), in that order."""
+        pick = (lambda values: None if values is None else values[index])
+        return Caps(self.centers[index], self.rotations[index], self.scales[index], pick(self.scores),
+                    pick(self.members))
+
+    def moved(self, T_frame_caps: np.ndarray) -> "Caps":
+        """The same caps in another frame (a rigid 4x4): centres and rotations move, sizes do not."""
+        return replace(self, centers=transform_points(T_frame_caps, self.centers),
+                       rotations=T_frame_caps[:3, :3] @ self.rotations)
+
+    def to_document(self, frame: str) -> dict:
+        """The detection document: ``{"frame", "units": "m", "mushrooms": [one entry per cap]}``."""
+        scores, members = self.score_array(), self.members if self.members is not None else np.zeros(len(self))
+        caps = [{"id": k, "center": center.tolist(), "axis": rotation[:, 2].tolist(), "rotation": rotation.tolist(),
+                 "radius": float(radius), "height": float(scale[2]), "cap_diameter_mm": 2000.0 * float(radius),
+                 "score": float(score), "num_points": int(count)}
+                for k, (center, rotation, scale, radius, score, count) in
+                enumerate(zip(self.centers, self.rotations, self.scales, self.radii, scores, members))]
+        return {"frame": frame, "units": "m", "mushrooms": caps}
+
+    @staticmethod
+    def from_document(document: dict) -> "Caps":
+        """The caps of a detection document (``to_document``'s inverse for caps with s_x = s_y); a
+        ValueError names what is missing or malformed."""
+        try:
+            caps = document["mushrooms"]
+            n = len(caps)
+            centers = np.array([c["center"] for c in caps], np.float64).reshape(n, 3)
+            rotations = np.array([c["rotation"] for c in caps], np.float64).reshape(n, 3, 3)
+            radii = np.array([c["radius"] for c in caps], np.float64).reshape(n)
+            heights = np.array([c["height"] for c in caps], np.float64).reshape(n)
+            scores = np.array([c["score"] for c in caps], np.float64).reshape(n)
+            members = np.array([c.get("num_points", 0) for c in caps], np.int64).reshape(n)
+        except (KeyError, TypeError, ValueError) as error:
+            raise ValueError(f"not a detection document ({type(error).__name__}: {error})") from None
+        return Caps(centers, rotations, np.column_stack([radii, radii, heights]), scores, members)

@@ -3,17 +3,17 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from common.geometry import cell_lookup, transform_points, voxel_representatives
-from perception.cap import Mushroom
+from perception.cap import Caps
 from perception.instances import ClusterConfig, cluster
 from perception.model import LENGTH_UNIT, MushroomNet, inference_model, voxel_features
-from perception.pose import CapFit, fit_caps
+from perception.pose import fit_caps
 from perception.sparse import COORD_MAX, SparseTensor, voxelize
 
 
@@ -36,9 +36,9 @@ class VoxelPrediction:
 class SceneResult:
     """Detected caps plus what led to them, per point of the input, in the input's frame."""
 
-    mushrooms: list[Mushroom]
-    fit: CapFit
+    caps: Caps
     point_labels: np.ndarray
+    """Each input point's cap (its index in ``caps``), -1 off every cap."""
     point_existence: np.ndarray
     voxels: VoxelPrediction
     frame: str = "bed"
@@ -166,14 +166,14 @@ def _nearest_voxel(points: np.ndarray, voxel: float, coords: np.ndarray, centroi
     return index
 
 
-def merge_pieces(labels: np.ndarray, fit: CapFit, ratio: float) -> np.ndarray | None:
+def merge_pieces(labels: np.ndarray, fit: Caps, ratio: float) -> np.ndarray | None:
     """Voxel labels with the caps whose fitted centres lie closer than ``ratio`` times the smaller
     fitted radius joined into one (relabelled 0..K-1, largest first); None when no two are that close.
     The smaller radius, because one bad fit with a huge radius would otherwise swallow its neighbours."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    radius = fit.scales[:, :2].mean(1)
+    radius = fit.radii
     distance = np.linalg.norm(fit.centers[:, None] - fit.centers[None], axis=2)
     close = np.triu(distance < ratio * np.minimum(radius[:, None], radius[None]), 1)
     if not close.any():
@@ -188,7 +188,7 @@ def merge_pieces(labels: np.ndarray, fit: CapFit, ratio: float) -> np.ndarray | 
 
 
 def find_caps(prediction: VoxelPrediction, voxel: float, cluster_config: ClusterConfig = ClusterConfig(),
-              height: str = "free", axis: str = "surface", timings: dict | None = None) -> tuple[np.ndarray, CapFit]:
+              height: str = "free", axis: str = "surface", timings: dict | None = None) -> tuple[np.ndarray, Caps]:
     """Voxel labels and fitted caps from the network's encoding: clusters of collapsed points, their
     poses, and pieces of one cap merged (``ClusterConfig.merge_ratio``, at most three rounds)."""
     timings = {} if timings is None else timings
@@ -217,9 +217,8 @@ def detect_points(model: MushroomNet, points: np.ndarray, cluster_config: Cluste
     timings["network"] = 1000 * (time.perf_counter() - start)
     voxel_labels, fit = find_caps(prediction, model.config.voxel, cluster_config, timings=timings)
     point_labels = voxel_labels[prediction.point_to_voxel]
-    mushrooms = [Mushroom(k, fit.centers[k], fit.rotations[k], fit.scales[k], float(fit.scores[k]),
-                          np.flatnonzero(point_labels == k)) for k in range(len(fit.centers))]
-    return SceneResult(mushrooms, fit, point_labels, prediction.existence[prediction.point_to_voxel], prediction,
+    members = np.bincount(point_labels[point_labels >= 0], minlength=len(fit))
+    return SceneResult(replace(fit, members=members), point_labels, prediction.existence[prediction.point_to_voxel], prediction,
                        timings_ms=timings)
 
 
@@ -227,15 +226,10 @@ def detect_points(model: MushroomNet, points: np.ndarray, cluster_config: Cluste
 
 def transform_result(result: SceneResult, T_frame_bed: np.ndarray, frame: str) -> SceneResult:
     """The same caps expressed in another frame (rotations and centres moved; sizes unchanged)."""
-    rotation = T_frame_bed[:3, :3]
-    centers = transform_points(T_frame_bed, result.fit.centers)
-    mushrooms = [Mushroom(m.id, centers[m.id], rotation @ m.rotation, m.scales, m.score, m.point_indices)
-                 for m in result.mushrooms]
-    fit = CapFit(centers, rotation @ result.fit.rotations, result.fit.scales, result.fit.scores, result.fit.counts)
     voxels = VoxelPrediction(transform_points(T_frame_bed, result.voxels.centroids), result.voxels.existence,
                              transform_points(T_frame_bed, result.voxels.centers), result.voxels.orientation,
                              result.voxels.point_to_voxel)
-    return SceneResult(mushrooms, fit, result.point_labels, result.point_existence, voxels, frame, result.timings_ms)
+    return SceneResult(result.caps.moved(T_frame_bed), result.point_labels, result.point_existence, voxels, frame, result.timings_ms)
 
 
 def log_rerun(rec, result: SceneResult, points: np.ndarray, entity: str = "world/perception",
@@ -250,8 +244,9 @@ def log_rerun(rec, result: SceneResult, points: np.ndarray, entity: str = "world
     rec.log(f"{entity}/existence", rr.Points3D(points, colors=colors, radii=0.0012))
     cap_voxels = result.voxels.existence > 0.5
     rec.log(f"{entity}/centers", rr.Points3D(result.voxels.centers[cap_voxels], radii=0.0008, colors=(40, 120, 240)))
-    log_caps(rec, f"{entity}/mushrooms", result.fit.centers, result.fit.rotations, result.fit.scales,
-             labels=[f"#{m.id} {2000 * m.radius:.0f} mm" for m in result.mushrooms], color=color)
+    caps = result.caps
+    log_caps(rec, f"{entity}/mushrooms", caps.centers, caps.rotations, caps.scales,
+             labels=[f"#{k} {2000 * radius:.0f} mm" for k, radius in enumerate(caps.radii)], color=color)
 
 
 def evaluate_on_scenes(model: MushroomNet, scenes, methods=("meanshift", "dbscan"), height: str = "free",
@@ -283,21 +278,17 @@ def evaluate_on_scenes(model: MushroomNet, scenes, methods=("meanshift", "dbscan
 
 
 def scene_caps(model: MushroomNet, scene, methods, height: str, axis: str, zoom: float | None):
-    """A synthetic scene's caps per clustering method, and its visible ground truth (SceneCaps)."""
-    from perception.evaluate import SceneCaps
-
+    """A synthetic scene's caps per clustering method, and its visible ground truth."""
     prediction = predict(model, scene.points, zoom=zoom)
     found = {}
     for method in methods:
-        _, fit = find_caps(prediction, model.config.voxel, ClusterConfig(method=method), height, axis)
-        found[method] = SceneCaps(fit.centers, fit.rotations, fit.scales, fit.scores)
+        found[method] = find_caps(prediction, model.config.voxel, ClusterConfig(method=method), height, axis)[1]
     return found, visible_truth(scene)
 
 
 def visible_truth(scene):
-    """A synthetic scene's caps that count as ground truth (``ground_truth_mask``), as SceneCaps."""
-    from perception.evaluate import SceneCaps
+    """A synthetic scene's caps that count as ground truth (``ground_truth_mask``)."""
     from perception.synthetic.dataset import ground_truth_mask
 
     visible = ground_truth_mask(scene)
-    return SceneCaps(scene.centers[visible], scene.rotations[visible], scene.scales[visible])
+    return Caps(scene.centers[visible], scene.rotations[visible], scene.scales[visible])

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
-from perception.cap import OrientedBox, cap_box
+from perception.cap import Caps, OrientedBox, cap_box
 
 ORIENTATION_IOU = 0.25
 """IoU threshold whose matches give the scale and orientation errors."""
@@ -114,26 +114,7 @@ def align_spin(pred_rotation: np.ndarray, gt_rotation: np.ndarray) -> np.ndarray
     return np.stack([x, np.cross(u, x), u], axis=-1)
 
 
-@dataclass(frozen=True)
-class SceneCaps:
-    """Caps of one scene: centres (K, 3), rotations (K, 3, 3), per-axis semi-axes (K, 3), scores (K,).
-
-    Ground truth leaves ``scores`` as None; predictions without scores count as all equally confident.
-    """
-
-    centers: np.ndarray
-    rotations: np.ndarray
-    scales: np.ndarray
-    scores: np.ndarray | None = None
-
-    def __len__(self) -> int:
-        return len(self.centers)
-
-    def score_array(self) -> np.ndarray:
-        return np.ones(len(self)) if self.scores is None else np.asarray(self.scores, np.float64)
-
-
-def _box_spheres(caps: SceneCaps) -> tuple[np.ndarray, np.ndarray]:
+def _box_spheres(caps: Caps) -> tuple[np.ndarray, np.ndarray]:
     """Bounding-sphere centres (K, 3) and radii (K,) of the cap boxes (invariant to spin)."""
     scales = np.asarray(caps.scales, np.float64).reshape(-1, 3)
     axes = np.asarray(caps.rotations, np.float64).reshape(-1, 3, 3)[:, :, 2]
@@ -142,7 +123,7 @@ def _box_spheres(caps: SceneCaps) -> tuple[np.ndarray, np.ndarray]:
     return centers, radii
 
 
-def iou_matrix(pred: SceneCaps, gt: SceneCaps) -> np.ndarray:
+def iou_matrix(pred: Caps, gt: Caps) -> np.ndarray:
     """IoU (M, K) of each predicted cap box (spin aligned to the ground truth) with each true cap box."""
     ious = np.zeros((len(pred), len(gt)))
     if ious.size == 0:
@@ -241,7 +222,7 @@ def _angle_of_mean_cosine(cosine: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(np.mean(cosine), -1.0, 1.0))))
 
 
-def evaluate(preds: list[SceneCaps], gts: list[SceneCaps],
+def evaluate(preds: list[Caps], gts: list[Caps],
              thresholds: tuple[float, ...] = (0.25, 0.5)) -> EvalResult:
     """AP at each IoU threshold (always including 0.25 and 0.5) and scale/axis errors of the matches."""
     if len(preds) != len(gts):

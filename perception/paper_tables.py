@@ -17,7 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from perception.evaluate import EvalResult, SceneCaps, evaluate
+from perception.cap import Caps
+from perception.evaluate import EvalResult, evaluate
 
 TABLES = (1, 2, 3, 4)
 ENCODING_RUNS = {"implicit": "slim-no", "explicit-centre": "slim-no-explicit-centre",
@@ -49,17 +50,17 @@ class Row:
         return {"method": self.method, **self.result.as_dict(), "ms_per_bed": self.ms_per_bed}
 
 
-def ground_truth(scenes) -> list[SceneCaps]:
+def ground_truth(scenes) -> list[Caps]:
     from perception.detect import visible_truth
 
     return [visible_truth(scene) for scene in scenes]
 
 
-def _row(method: str, found: list[SceneCaps], seconds: list[float], truth: list[SceneCaps]) -> Row:
+def _row(method: str, found: list[Caps], seconds: list[float], truth: list[Caps]) -> Row:
     return Row(method, evaluate(found, truth), 1000 * float(np.median(seconds)) if seconds else float("nan"))
 
 
-def ransac_rows(model, scenes, truth: list[SceneCaps], progress: bool = False) -> list[Row]:
+def ransac_rows(model, scenes, truth: list[Caps], progress: bool = False) -> list[Row]:
     """Table 1: every feature kind of the template-matching baseline."""
     from tqdm import tqdm
 
@@ -76,7 +77,7 @@ def ransac_rows(model, scenes, truth: list[SceneCaps], progress: bool = False) -
     return rows
 
 
-def encoding_rows(models: dict, scenes, truth: list[SceneCaps], progress: bool = False) -> list[Row]:
+def encoding_rows(models: dict, scenes, truth: list[Caps], progress: bool = False) -> list[Row]:
     """Table 2: each encoding's network (``models[encoding]``) with MeanShift and the encoding's own axis."""
     from tqdm import tqdm
 
@@ -90,12 +91,12 @@ def encoding_rows(models: dict, scenes, truth: list[SceneCaps], progress: bool =
             start = time.perf_counter()
             _, fit = find_caps(predict(model, scene.points), model.config.voxel, ClusterConfig(), axis="encoding")
             seconds.append(time.perf_counter() - start)
-            found.append(SceneCaps(fit.centers, fit.rotations, fit.scales, fit.scores))
+            found.append(fit)
         rows.append(_row(encoding, found, seconds, truth))
     return rows
 
 
-def our_rows(model, scenes, truth: list[SceneCaps], progress: bool = False) -> list[Row]:
+def our_rows(model, scenes, truth: list[Caps], progress: bool = False) -> list[Row]:
     """Tables 3 and 4: ours with DBSCAN and MeanShift, and MeanShift's caps refined by ICP."""
     from tqdm import tqdm
 
@@ -113,7 +114,7 @@ def our_rows(model, scenes, truth: list[SceneCaps], progress: bool = False) -> l
             start = time.perf_counter()
             labels, fit = find_caps(prediction, model.config.voxel, ClusterConfig(method=method))
             seconds[method].append(network + time.perf_counter() - start)
-            found[method].append(SceneCaps(fit.centers, fit.rotations, fit.scales, fit.scores))
+            found[method].append(fit)
         start = time.perf_counter()
         found["ours+icp"].append(refine_by_icp(fit, points_by_cap(prediction.centroids, labels, len(fit.centers))))
         seconds["ours+icp"].append(seconds["meanshift"][-1] + time.perf_counter() - start)

@@ -24,12 +24,11 @@ beds, val50 at 5.1 mm spacing: mean angle 5.91 degrees from the encoding alone, 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from perception.cap import CAP_HEIGHT_RATIO, rotation_from_axis
+from perception.cap import CAP_HEIGHT_RATIO, Caps, rotation_from_axis
 
 HEIGHT_MODES = ("free", "fixed")
 AXIS_MODES = ("surface", "encoding")
@@ -83,16 +82,6 @@ HEIGHT_RATIO_RANGE = (CAP_HEIGHT_RATIO * 0.8 / 1.2, CAP_HEIGHT_RATIO * 1.2 / 0.8
 """s_z / s of the template under per-axis factors in [0.8, 1.2]."""
 
 
-@dataclass(frozen=True)
-class CapFit:
-    centers: np.ndarray
-    rotations: np.ndarray
-    scales: np.ndarray
-    """(K, 3) = (s, s, 2 s / 3)."""
-    scores: np.ndarray
-    counts: np.ndarray
-
-
 class _Clusters:
     """The labelled points sorted by label (stable: each cluster keeps its order), per-point values
     component-major: numpy's small-axis operations on (n, 3) rows cost several times more than the
@@ -132,7 +121,7 @@ _SYSTEM_INDEX = np.array([0, 1, 2, 4])
 
 
 def fit_caps(points: np.ndarray, predicted_centers: np.ndarray, orientation: np.ndarray,
-             existence: np.ndarray, labels: np.ndarray, height: str = "free", axis: str = "surface") -> CapFit:
+             existence: np.ndarray, labels: np.ndarray, height: str = "free", axis: str = "surface") -> Caps:
     """Fit every labelled instance (labels 0..K-1; -1 ignored) in one vectorised pass.
 
     ``axis="surface"`` refines the encoding's axes by each cluster's surface (``refine_axes``);
@@ -144,7 +133,7 @@ def fit_caps(points: np.ndarray, predicted_centers: np.ndarray, orientation: np.
     clusters = _Clusters(np.asarray(labels))
     k, counts = clusters.k, clusters.counts
     if k == 0:
-        return CapFit(np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64))
+        return Caps.none()
     p, y = clusters.take(points), clusters.take(orientation)
     sums = clusters.sums(np.vstack([clusters.take(predicted_centers), clusters.take(existence)]))
     centers, scores = sums[:, :3] / counts[:, None], sums[:, 3] / counts
@@ -172,11 +161,11 @@ def fit_caps(points: np.ndarray, predicted_centers: np.ndarray, orientation: np.
     if axis == "surface":
         cap_axis = refine_axes(p, y, clusters.lab, centers, rotations, scales)
         rotations, scales = _orient_and_size(d, clusters, cap_axis, height)
-    return CapFit(centers, rotations, scales, scores, counts)
+    return Caps(centers, rotations, scales, scores, counts)
 
 
 def _fit_explicit_axes(clusters: _Clusters, p: np.ndarray, centers: np.ndarray, scores: np.ndarray,
-                       vectors: np.ndarray, height: str) -> CapFit:
+                       vectors: np.ndarray, height: str) -> Caps:
     """Caps from the explicit-orientation ablation (the paper's Table 2): every cap voxel predicts its
     cap's axis; a cap's axis is the mean of its voxels' unit vectors, its centre the mean predicted
     centre, its size as for the implicit encoding (no intercept, no surface refinement)."""
@@ -186,7 +175,7 @@ def _fit_explicit_axes(clusters: _Clusters, p: np.ndarray, centers: np.ndarray, 
     norm = np.linalg.norm(mean, axis=1)
     cap_axis = np.where(norm[:, None] > 1e-12, mean / np.maximum(norm, 1e-12)[:, None], [0.0, 0.0, 1.0])
     rotations, scales = _orient_and_size(p - clusters.spread(centers), clusters, cap_axis, height)
-    return CapFit(centers, rotations, scales, scores, clusters.counts)
+    return Caps(centers, rotations, scales, scores, clusters.counts)
 
 
 def _orient_and_size(d: np.ndarray, clusters: _Clusters, cap_axis: np.ndarray,

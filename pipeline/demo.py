@@ -49,7 +49,8 @@ def run_demo(out_dir: Path, model, seed: int = 0, views: int = 18, rrd: bool = T
 def _run(folder: Path, model, seed: int, views: int, rrd: bool, spawn: bool, progress: bool) -> tuple:
     from fusion.cloud import FusionConfig
     from fusion.turntable import Rig
-    from perception.evaluate import SceneCaps, evaluate
+    from perception.cap import Caps
+    from perception.evaluate import evaluate
     from pipeline.runner import FusionStage, RunConfig
     from pipeline.session import Outputs, run_chain
     from pipeline.sources import VirtualBedRig, virtual_bed_source
@@ -66,9 +67,7 @@ def _run(folder: Path, model, seed: int, views: int, rrd: bool, spawn: bool, pro
     if not summary.detections:
         raise ValueError("the turn produced no fused cloud")
     detection = summary.last_detection
-    fit = detection.result.fit
-    score = evaluate([SceneCaps(fit.centers, fit.rotations, fit.scales, fit.scores)],
-                     [SceneCaps(bed.centers, bed.rotations, bed.scales)])
+    score = evaluate([detection.result.caps], [Caps(bed.centers, bed.rotations, bed.scales)])
     seconds = {"scene": scene_s, "capture and fusion": time.perf_counter() - start - detection.perception_seconds,
                "perception": detection.perception_seconds}
-    return len(detection.result.mushrooms), len(bed.centers), score.ap25, score.ap50, score.angle_deg, seconds
+    return len(detection.result.caps), len(bed.centers), score.ap25, score.ap50, score.angle_deg, seconds

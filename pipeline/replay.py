@@ -47,6 +47,13 @@ def read_expected(path: Path) -> list[dict]:
     if not isinstance(documents, list) or not all(isinstance(d, dict) and isinstance(d.get("mushrooms"), list)
                                                   for d in documents):
         raise ReplayError(f"{path} holds no detection documents ({{\"mushrooms\": [...]}} or a list of them)")
+    from perception.cap import Caps
+
+    for unit, document in enumerate(documents):
+        try:
+            Caps.from_document(document)
+        except ValueError as error:
+            raise ReplayError(f"{path}, unit {unit}: {error}") from None
     return documents
 
 

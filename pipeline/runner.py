@@ -90,7 +90,7 @@ class Detection:
     result: object
     """perception.detect.SceneResult, world frame."""
     document: dict
-    """The detection document (perception.cap.detections_document)."""
+    """The detection document (perception.cap.Caps.to_document)."""
     perception_seconds: float
     latency_seconds: float
     """From the unit's last frame leaving the source to its detections."""
@@ -110,7 +110,7 @@ class DetectionRecord:
 
     @staticmethod
     def of(detection: Detection) -> "DetectionRecord":
-        return DetectionRecord(detection.unit.index, detection.document, len(detection.result.mushrooms),
+        return DetectionRecord(detection.unit.index, detection.document, len(detection.result.caps),
                                detection.unit.fusion_seconds, detection.perception_seconds,
                                detection.latency_seconds)
 
@@ -278,7 +278,6 @@ class Runner:
             self._unit_ready.notify_all()
 
     def _perceive(self) -> None:
-        from perception.cap import detections_document
         from perception.detect import detect_points, transform_result
         from perception.instances import ClusterConfig
 
@@ -296,7 +295,7 @@ class Runner:
                 result = transform_result(detect_points(self.model, cloud.points, clustering), cloud.T_world_bed,
                                           "world")
                 now = time.perf_counter()
-                detection = Detection(unit, result, detections_document(result.mushrooms, "world"), now - started,
+                detection = Detection(unit, result, result.caps.to_document("world"), now - started,
                                       now - unit.last_arrival)
                 self.summary.detections.append(DetectionRecord.of(detection))
                 self.summary.last_detection = detection
@@ -304,7 +303,7 @@ class Runner:
                     sink.detected(detection)
                 for name, value in (("latency/perception_ms", 1000 * detection.perception_seconds),
                                     ("latency/last_frame_to_detections_ms", 1000 * detection.latency_seconds),
-                                    ("counts/caps", len(result.mushrooms)),
+                                    ("counts/caps", len(result.caps)),
                                     ("counts/dropped_units", self.summary.dropped_units)):
                     self._stat(name, value, unit)
         except BaseException as error:  # noqa: BLE001 - handed to the main thread

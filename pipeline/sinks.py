@@ -58,10 +58,10 @@ class RerunSink(Sink):
         unit = detection.unit
         self._time(unit.last_frame_index, unit.last_frame_ns)
         log_rerun(self.rec, detection.result, unit.cloud.world_points, color=CAP_COLOR)
-        fit = detection.result.fit
+        caps = detection.result.caps
         for sensor, frame in list(self._views.items()):
             if frame.T_world_camera is not None:
-                log_caps_in_image(self.rec, f"world/camera/{sensor}/caps", fit.centers, fit.rotations, fit.scales,
+                log_caps_in_image(self.rec, f"world/camera/{sensor}/caps", caps.centers, caps.rotations, caps.scales,
                                   frame.T_world_camera, frame.intrinsics, CAP_COLOR)
 
     def stats(self, name: str, value: float, frame: int, capture_ns: int) -> None:
@@ -101,7 +101,7 @@ class McapSink(Sink):
 
         t = detection.unit.last_frame_ns
         document = {**detection.document, "unit": detection.unit.index}
-        outlines = cap_outlines(detection.result.fit)
+        outlines = cap_outlines(detection.result.caps)
         with self._lock:
             self.recorder.write_scene_update(CAPS_TOPIC, caps_scene_update(detection, t), t)
             self.recorder.write_point_cloud(CAP_OUTLINES_TOPIC, outlines, t, "world",
@@ -114,12 +114,12 @@ class McapSink(Sink):
             self.recorder.close(discard=self.frames and not self.recorder.frames)
 
 
-def cap_outlines(fit) -> np.ndarray:
+def cap_outlines(caps) -> np.ndarray:
     """The caps as wire domes in one (N, 3) array, for viewers that draw point clouds but no
     SceneUpdate from an MCAP (Rerun)."""
     from perception.cap import cap_wireframe
 
-    return cap_wireframe(fit.centers, fit.rotations, fit.scales).reshape(-1, 3).astype(np.float32)
+    return cap_wireframe(caps.centers, caps.rotations, caps.scales).reshape(-1, 3).astype(np.float32)
 
 
 def caps_scene_update(detection: Detection, log_time_ns: int):
@@ -129,12 +129,12 @@ def caps_scene_update(detection: Detection, log_time_ns: int):
                                    Timestamp, Vector3)
     from scipy.spatial.transform import Rotation
 
-    fit = detection.result.fit
+    caps = detection.result.caps
     stamp = Timestamp(log_time_ns // 1_000_000_000, log_time_ns % 1_000_000_000)
     r, g, b = (channel / 255 for channel in CAP_COLOR)
-    quaternions = Rotation.from_matrix(fit.rotations).as_quat() if len(fit.centers) else np.zeros((0, 4))
+    quaternions = Rotation.from_matrix(caps.rotations).as_quat() if len(caps) else np.zeros((0, 4))
     entities = []
-    for k, (center, rotation, scales, q) in enumerate(zip(fit.centers, fit.rotations, fit.scales, quaternions)):
+    for k, (center, rotation, scales, q) in enumerate(zip(caps.centers, caps.rotations, caps.scales, quaternions)):
         orientation = Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])
         box_center = center + rotation[:, 2] * scales[2] / 2
         top = center + rotation[:, 2] * (scales[2] + 0.006)
@@ -184,6 +184,6 @@ class ConsoleSink(Sink):
             return
         unit = detection.unit
         print(f"{unit.kind} {unit.index + 1}: {unit.frames} frames, {len(unit.cloud)} points, "
-              f"{len(detection.result.mushrooms)} caps (fusion {unit.fusion_seconds:.2f} s, perception "
+              f"{len(detection.result.caps)} caps (fusion {unit.fusion_seconds:.2f} s, perception "
               f"{detection.perception_seconds:.2f} s, last frame to caps {detection.latency_seconds:.2f} s)",
               file=sys.stderr, flush=True)

@@ -7,9 +7,8 @@ from scipy.spatial import cKDTree
 
 from perception.baselines import (TEMPLATE_RADIUS, TemplateMatching, match_templates, refine_by_icp, similarity,
                                   template_points)
-from perception.cap import CAP_HEIGHT_RATIO, rotation_from_axis
-from perception.evaluate import SceneCaps, iou_matrix
-from perception.pose import CapFit
+from perception.cap import CAP_HEIGHT_RATIO, Caps, rotation_from_axis
+from perception.evaluate import iou_matrix
 
 SPACING = 0.003
 CAPS = [((0.05, 0.05, 0.0), (0.0, 0.0, 1.0), 0.020),
@@ -45,9 +44,9 @@ def test_template_points_lie_on_the_cap_dome_with_outward_normals():
     assert 0.6 * SPACING < spacing < 1.4 * SPACING
 
 
-def _truth() -> SceneCaps:
+def _truth() -> Caps:
     rotations = np.stack([rotation_from_axis(np.asarray(axis) / np.linalg.norm(axis)) for _, axis, _ in CAPS])
-    return SceneCaps(np.array([center for center, _, _ in CAPS]), rotations,
+    return Caps(np.array([center for center, _, _ in CAPS]), rotations,
                      np.array([[radius, radius, CAP_HEIGHT_RATIO * radius] for _, _, radius in CAPS]))
 
 
@@ -72,9 +71,9 @@ def test_icp_refinement_moves_a_displaced_cap_onto_its_points(seed):
     points = template_points(0.0015)[0] @ (radius / TEMPLATE_RADIUS * truth).T + center
     start_center = center + rng.normal(0, 0.003, 3)
     start_axis = axis / np.linalg.norm(axis) + rng.normal(0, 0.05, 3)
-    start = CapFit(centers=start_center[None], rotations=rotation_from_axis(start_axis / np.linalg.norm(start_axis))[None],
+    start = Caps(centers=start_center[None], rotations=rotation_from_axis(start_axis / np.linalg.norm(start_axis))[None],
                    scales=np.array([[1.15 * radius, 1.15 * radius, 1.15 * CAP_HEIGHT_RATIO * radius]]),
-                   scores=np.ones(1), counts=np.array([len(points)]))
+                   scores=np.ones(1), members=np.array([len(points)]))
     refined = refine_by_icp(start, [points], spacing=0.0015)
     assert np.linalg.norm(refined.centers[0] - center) < np.linalg.norm(start_center - center)
     assert abs(refined.scales[0, 0] / radius - 1) < 0.15 / 3

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from perception.cap import OrientedBox, cap_box, cap_rotation, rotation_z
-from perception.evaluate import (SceneCaps, align_spin, average_precision, box_iou, evaluate,
+from perception.cap import Caps, OrientedBox, cap_box, cap_rotation, rotation_z
+from perception.evaluate import (align_spin, average_precision, box_iou, evaluate,
                                  intersection_volume, iou_matrix)
 
 OCTAGON_AREA = 2.0 * (math.sqrt(2.0) - 1.0)
@@ -165,8 +165,8 @@ def test_spun_prediction_is_aligned():
 
     aligned = align_spin(spun, gt_rotation)
     np.testing.assert_allclose(aligned, gt_rotation, atol=1e-12)
-    gt = SceneCaps(center[None], gt_rotation[None], scales[None])
-    pred = SceneCaps(center[None], spun[None], scales[None], np.ones(1))
+    gt = Caps(center[None], gt_rotation[None], scales[None])
+    pred = Caps(center[None], spun[None], scales[None], np.ones(1))
     assert iou_matrix(pred, gt)[0, 0] == pytest.approx(1.0, abs=1e-9)
 
     tilted = cap_rotation(*rng.uniform(-0.5, 0.5, size=3))
@@ -176,18 +176,18 @@ def test_spun_prediction_is_aligned():
     np.testing.assert_allclose(result[:, 2], tilted[:, 2], atol=1e-12)
 
 
-def ground_truth_scene(n: int, rng: np.random.Generator) -> SceneCaps:
+def ground_truth_scene(n: int, rng: np.random.Generator) -> Caps:
     """n caps on a line 0.1 m apart (far enough that their boxes never overlap)."""
     centers = np.column_stack([0.1 * np.arange(n), rng.uniform(-0.01, 0.01, n), np.zeros(n)])
     rotations = cap_rotation(*rng.uniform(-0.4, 0.4, size=(3, n)))
     radius = rng.uniform(0.015, 0.03, n)
     scales = np.column_stack([radius, radius * rng.uniform(0.9, 1.1, n), 2 * radius / 3])
-    return SceneCaps(centers, rotations, scales)
+    return Caps(centers, rotations, scales)
 
 
-def as_predictions(gt: SceneCaps, scores, keep=None) -> SceneCaps:
+def as_predictions(gt: Caps, scores, keep=None) -> Caps:
     keep = np.arange(len(gt)) if keep is None else np.asarray(keep)
-    return SceneCaps(gt.centers[keep], gt.rotations[keep], gt.scales[keep], np.asarray(scores, float))
+    return Caps(gt.centers[keep], gt.rotations[keep], gt.scales[keep], np.asarray(scores, float))
 
 
 def test_ground_truth_as_predictions_is_perfect():
@@ -214,7 +214,7 @@ def test_scale_and_axis_errors_of_matches():
     s_pred = 1.1 * s_true
     tilt = 10.0
     rotation = gt.rotations[0] @ Rotation.from_euler("x", tilt, degrees=True).as_matrix()
-    pred = SceneCaps(gt.centers, rotation[None], np.array([[s_pred, s_pred, 2 * s_pred / 3]]), np.ones(1))
+    pred = Caps(gt.centers, rotation[None], np.array([[s_pred, s_pred, 2 * s_pred / 3]]), np.ones(1))
     result = evaluate([pred], [gt])
     assert result.n_matched == 1
     assert result.scale_err == pytest.approx(abs(s_pred - s_true) / s_pred)
@@ -232,7 +232,7 @@ def test_angle_is_that_of_the_mean_cosine_as_in_the_paper():
     gt = ground_truth_scene(3, rng)
     tilts = np.array([2.0, 4.0, 40.0])
     rotations = gt.rotations @ Rotation.from_euler("x", tilts[:, None], degrees=True).as_matrix()
-    pred = SceneCaps(gt.centers, rotations, gt.scales, np.ones(3))
+    pred = Caps(gt.centers, rotations, gt.scales, np.ones(3))
     result = evaluate([pred], [gt])
     assert result.n_matched == 3
     assert result.cosine == pytest.approx(np.cos(np.radians(tilts)).mean())
@@ -251,7 +251,7 @@ def test_missing_detection():
     assert result.ap50 == pytest.approx((n - 1) / n)
 
 
-def with_duplicate(gt: SceneCaps, scores, dup_of: int, dup_score: float) -> SceneCaps:
+def with_duplicate(gt: Caps, scores, dup_of: int, dup_score: float) -> Caps:
     keep = np.append(np.arange(len(gt)), dup_of)
     return as_predictions(gt, np.append(scores, dup_score), keep)
 
@@ -276,7 +276,7 @@ def test_duplicate_detections():
 def test_matching_stays_within_each_scene():
     rng = np.random.default_rng(9)
     gt = ground_truth_scene(2, rng)
-    empty = SceneCaps(np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)))
+    empty = Caps(np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)))
     # Scene 1's prediction sits exactly on scene 0's first cap but scene 1 has no ground truth.
     preds = [as_predictions(gt, [0.5, 0.4]), as_predictions(gt, [0.9], keep=[0])]
     result = evaluate(preds, [gt, empty])
@@ -295,7 +295,7 @@ def test_average_precision_alone():
     assert average_precision([], [], 2) == 0.0
 
 
-def moved(gt: SceneCaps, index: int, axis: int, fraction: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def moved(gt: Caps, index: int, axis: int, fraction: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Cap ``index`` of ``gt`` moved along its own x (axis 0) or z (axis 2) by ``fraction`` of its
     extent there: s_x for x, s_z for z (centre, rotation, scales)."""
     rotation = gt.rotations[index]
@@ -314,7 +314,7 @@ def test_iou_of_a_cap_moved_along_its_own_axes(axis, fraction):
     rng = np.random.default_rng(10)
     gt = ground_truth_scene(3, rng)
     for index in range(3):
-        pred = SceneCaps(*(value[None] for value in moved(gt, index, axis, fraction)), np.ones(1))
+        pred = Caps(*(value[None] for value in moved(gt, index, axis, fraction)), np.ones(1))
         expected = (2 - fraction) / (2 + fraction) if axis == 0 else max(1 - fraction, 0.0) / (1 + fraction)
         assert iou_matrix(pred, gt)[0, index] == pytest.approx(expected, abs=1e-9)
 
@@ -334,7 +334,7 @@ def test_ap25_and_ap50_of_displaced_and_duplicated_detections():
     rng = np.random.default_rng(11)
     gt = ground_truth_scene(4, rng)
     caps = [moved(gt, 0, 0, 0.0), moved(gt, 1, 0, 1.0), moved(gt, 0, 0, 0.0), moved(gt, 2, 0, 0.2)]
-    pred = SceneCaps(*(np.array(values) for values in zip(*caps)), np.array([0.9, 0.8, 0.7, 0.6]))
+    pred = Caps(*(np.array(values) for values in zip(*caps)), np.array([0.9, 0.8, 0.7, 0.6]))
     result = evaluate([pred], [gt], thresholds=(0.25, 0.5, 0.85))
     assert result.ap25 == pytest.approx(11 / 16)
     assert result.ap50 == pytest.approx(3 / 8)
@@ -353,7 +353,7 @@ def test_a_higher_scored_loose_detection_takes_the_cap_at_ap25_but_not_at_ap50()
     rng = np.random.default_rng(12)
     gt = ground_truth_scene(2, rng)
     caps = [moved(gt, 0, 0, 1.0), moved(gt, 0, 0, 0.0), moved(gt, 1, 0, 0.0)]
-    pred = SceneCaps(*(np.array(values) for values in zip(*caps)), np.array([0.9, 0.8, 0.7]))
+    pred = Caps(*(np.array(values) for values in zip(*caps)), np.array([0.9, 0.8, 0.7]))
     result = evaluate([pred], [gt])
     assert result.ap25 == pytest.approx(5 / 6)
     assert result.ap50 == pytest.approx(2 / 3)
@@ -366,10 +366,10 @@ def test_the_bounding_sphere_prefilter_keeps_every_overlapping_pair():
     rng = np.random.default_rng(13)
     n = 40
     radius = rng.uniform(0.01, 0.02, n)
-    gt = SceneCaps(np.column_stack([rng.uniform(-0.03, 0.03, (n, 2)), rng.uniform(-0.005, 0.005, n)]),
+    gt = Caps(np.column_stack([rng.uniform(-0.03, 0.03, (n, 2)), rng.uniform(-0.005, 0.005, n)]),
                    cap_rotation(*rng.uniform(-0.6, 0.6, size=(3, n))),
                    np.column_stack([radius, radius * rng.uniform(0.8, 1.2, n), 2 * radius / 3]))
-    pred = SceneCaps(gt.centers + rng.normal(0, 0.01, (n, 3)), cap_rotation(*rng.uniform(-0.6, 0.6, size=(3, n))),
+    pred = Caps(gt.centers + rng.normal(0, 0.01, (n, 3)), cap_rotation(*rng.uniform(-0.6, 0.6, size=(3, n))),
                      gt.scales * rng.uniform(0.7, 1.3, (n, 3)), rng.uniform(size=n))
     full = np.array([[box_iou(cap_box(pred.centers[i], align_spin(pred.rotations[i], gt.rotations[j]), pred.scales[i]),
                               cap_box(gt.centers[j], gt.rotations[j], gt.scales[j])) for j in range(n)]

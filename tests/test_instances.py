@@ -140,13 +140,13 @@ def test_climbing_the_seeds_is_meanshifts_own_step_and_changes_no_label(monkeypa
 
 def _fit(centers, radii):
     from perception.cap import rotation_from_axis
-    from perception.pose import CapFit
+    from perception.cap import Caps
 
     centers = np.asarray(centers, np.float64)
     radii = np.asarray(radii, np.float64)
     scales = np.stack([radii, radii, 2 * radii / 3], 1)
     rotations = rotation_from_axis(np.tile([0.0, 0.0, 1.0], (len(centers), 1)))
-    return CapFit(centers, rotations, scales, np.ones(len(centers)), np.full(len(centers), 10))
+    return Caps(centers, rotations, scales, np.ones(len(centers)), np.full(len(centers), 10))
 
 
 def test_pieces_of_one_cap_are_merged_and_touching_caps_are_not():

@@ -63,7 +63,7 @@ def test_ideal_caps_are_recovered_exactly_all_at_once(height):
         np.testing.assert_allclose(fit.centers[label], c, atol=1e-10)
         np.testing.assert_allclose(fit.rotations[label][:, 2], true_axis, atol=1e-9)
         np.testing.assert_allclose(fit.scales[label], [s, s, CAP_HEIGHT_RATIO * s], rtol=1e-9)
-    np.testing.assert_array_equal(fit.counts, [400, 400, 400])
+    np.testing.assert_array_equal(fit.members, [400, 400, 400])
 
 
 def test_free_height_fits_flatter_and_taller_caps_the_fixed_ratio_cannot():
@@ -169,7 +169,7 @@ def test_the_fit_does_not_depend_on_how_the_clusters_interleave():
     order[np.argsort(arrangement, kind="stable")] = np.argsort(labels, kind="stable")
     assert np.any(np.diff(labels[order]) < 0)
     fit, interleaved = fit_caps(*stacked), fit_caps(*(x[order] for x in stacked))
-    for field in ("centers", "rotations", "scales", "scores", "counts"):
+    for field in ("centers", "rotations", "scales", "scores", "members"):
         np.testing.assert_allclose(getattr(interleaved, field), getattr(fit, field), rtol=1e-9, atol=1e-12)
 
 

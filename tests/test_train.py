@@ -472,4 +472,4 @@ def test_training_learns_one_bed_by_heart(tmp_path, monkeypatch):
         fell = losses[:10].mean() / losses[-10:].mean()
         assert fell >= factor, f"the {term} loss fell only {fell:.1f} times in 300 steps on one bed"
     model, _ = load_weights(weights)
-    assert len(detect_points(model, bed["points"].astype(np.float64), zoom=1.0).mushrooms) == 6
+    assert len(detect_points(model, bed["points"].astype(np.float64), zoom=1.0).caps) == 6

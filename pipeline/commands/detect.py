@@ -34,7 +34,6 @@ def run(args: argparse.Namespace) -> int:
 
     from common.geometry import transform_points
     from fusion.bed import estimate_bed_frame
-    from perception.cap import detections_document
     from perception.detect import detect_points, log_rerun, transform_result
     from perception.instances import ClusterConfig
     from pipeline.clouds import load_cloud
@@ -69,10 +68,10 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as error:
         raise CliError(str(error)) from None
     result = transform_result(result, T_input_bed, frame)
-    print(f"{len(result.mushrooms)} caps in {args.cloud} ({len(points)} points, frame: {frame}, metres)")
+    print(f"{len(result.caps)} caps in {args.cloud} ({len(points)} points, frame: {frame}, metres)")
     _print_caps(result, T_input_bed[:3, 2])
     _warn_outside_range(model, bed_points, result, args.cloud)
-    payload = {**detections_document(result.mushrooms, frame), "T_input_bed": T_input_bed.tolist()}
+    payload = {**result.caps.to_document(frame), "T_input_bed": T_input_bed.tolist()}
     replace_file(out, json.dumps(payload, indent=1))
     with rerun_stream(rrd) as rec:
         if rec is not None:
@@ -119,7 +118,7 @@ def _detect_session(args: argparse.Namespace) -> int:
     if not summary.detections:
         raise CliError(f"{args.cloud}: its frames gave no fused cloud")
     result = summary.last_detection.result
-    print(f"{len(result.mushrooms)} caps in {args.cloud} (fused {summary.units} units from {summary.frames} frames; "
+    print(f"{len(result.caps)} caps in {args.cloud} (fused {summary.units} units from {summary.frames} frames; "
           "the last unit's caps, frame: world, metres)")
     _print_caps(result, summary.last_detection.unit.cloud.T_world_bed[:3, 2])
     print(f"detections: {out}" + (f"  rerun: {rrd}" if rrd else ""))
@@ -135,11 +134,11 @@ def _warn_outside_range(model, bed_points, result, cloud: str) -> None:
         print(f"warning: the points of {cloud} lie as far apart as a bed sampled every {1000 * spacing:.1f} mm; the "
               f"model holds to {1000 * OPERATING_SPACING:g} mm: caps under 30 mm across are found less reliably",
               file=sys.stderr)
-    wide = sum(2 * m.radius > OPERATING_DIAMETER for m in result.mushrooms)
+    wide = int((2 * result.caps.radii > OPERATING_DIAMETER).sum())
     if wide:
         print(f"warning: {wide} caps are over {1000 * OPERATING_DIAMETER:.0f} mm across, beyond the sizes the model "
               "holds to: their size and axis are less reliable", file=sys.stderr)
-    if not result.mushrooms and len(bed_points) > 1000:
+    if not len(result.caps) and len(bed_points) > 1000:
         print(f"warning: no caps in {len(bed_points)} points: if the bed plainly has caps, check the cloud's units "
               "and that it shows a bed seen from above", file=sys.stderr)
 
@@ -148,9 +147,9 @@ def _print_caps(result, up) -> None:
     """One line per cap: centre (mm), tilt from ``up`` (deg), diameter (mm) and score."""
     from perception.cap import tilt_deg
 
-    if result.mushrooms:
+    caps = result.caps
+    if len(caps):
         print(f"{'id':>3} {'x mm':>8} {'y mm':>8} {'z mm':>8} {'tilt deg':>8} {'cap mm':>7} {'score':>6}")
-    for m in result.mushrooms:
-        x, y, z = 1000 * m.center
-        print(f"{m.id:>3} {x:>8.1f} {y:>8.1f} {z:>8.1f} {float(tilt_deg(m.axis, up)):>8.1f} "
-              f"{2000 * m.radius:>7.1f} {m.score:>6.2f}")
+    for k, ((x, y, z), tilt, radius, score) in enumerate(zip(1000 * caps.centers, tilt_deg(caps.axes, up), caps.radii,
+                                                           caps.score_array())):
+        print(f"{k:>3} {x:>8.1f} {y:>8.1f} {z:>8.1f} {float(tilt):>8.1f} {2000 * radius:>7.1f} {score:>6.2f}")
