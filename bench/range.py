@@ -64,7 +64,7 @@ def main() -> None:
         scale = (low / 2000 / CAP_RADIUS_AT_UNIT_SCALE, high / 2000 / CAP_RADIUS_AT_UNIT_SCALE)
         cells = []
         for spacing in args.spacings:
-            config = SceneConfig(mushrooms=(5, 25), scale=scale, axis_factor=(1.0, 1.0), voxel=spacing / 1000)
+            config = SceneConfig(mushrooms=(5, 25), scale=scale, axis_factor=(1.0, 1.0), spacing=spacing / 1000)
             scenes = [generate_scene(int(1000 * high + seed), config) for seed in range(args.beds)]
             ap25, ap50, caps = score(model, scenes)
             cells.append(f"{100 * ap25:.1f} / {100 * ap50:.1f} % ({caps})")

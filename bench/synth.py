@@ -41,7 +41,7 @@ def main() -> None:
     generate_scene(seeds[0])
     print(f"{'visibility':<10} {'median ms':>10} {'p90 ms':>8} {'median pts':>11} {'pts/s':>10} {'x paper':>8}")
     for model in args.models:
-        config = SceneConfig(visibility=model, voxel=args.spacing)
+        config = SceneConfig(visibility=model, spacing=args.spacing)
         times, points = [], []
         for seed in seeds:
             start = time.perf_counter()

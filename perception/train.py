@@ -36,7 +36,7 @@ from perception.synthetic.scene import SceneConfig, generate_scene
 @dataclass(frozen=True)
 class TrainConfig:
     """The paper's recipe (Sec. 4) with our augmentations; every field is a ``mushroom-pose train`` flag
-    (``scene`` by its voxel, scale and jitter)."""
+    (``scene`` by its spacing, scale and jitter)."""
 
     iterations: int = 20000
     """Training steps, each on a fresh synthetic bed (the paper's 20000)."""
@@ -140,7 +140,7 @@ def augmented_sample(config: TrainConfig, iteration: int) -> dict[str, np.ndarra
 
 
 def _differences(saved: dict, asked: dict, prefix: str = "") -> str:
-    """'name: saved there, asked here' for each field that differs, nested fields as scene.voxel."""
+    """'name: saved there, asked here' for each field that differs, nested fields as scene.spacing."""
     found = []
     for name in sorted(set(saved) | set(asked)):
         there, here = saved.get(name), asked.get(name)
@@ -394,7 +394,7 @@ class TrainingRun:
         run_dir.mkdir(parents=True, exist_ok=True)
         self.network_config = NETWORK_PRESETS[config.network]
         torch.manual_seed(config.seed)
-        self.model = MushroomNet(self.network_config, point_spacing=config.scene.voxel,
+        self.model = MushroomNet(self.network_config, point_spacing=config.scene.spacing,
                                  inference_zoom=INFERENCE_ZOOM if config.zoom is None else config.zoom).to(device)
         self.init = self._load_init_weights() if config.init_weights and not resume else None
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr)
@@ -423,7 +423,10 @@ class TrainingRun:
         """Model, optimiser, schedule, weights' mean and torch RNG as the checkpoint left them."""
         state = _load_checkpoint(self.checkpoint_path, self.device)
         # a checkpoint without a field ran with its default
-        differ = _differences({**TrainConfig().to_dict(), **state["train_config"]}, self.config.to_dict())
+        saved = {**TrainConfig().to_dict(), **state["train_config"]}
+        saved["scene"] = {**saved["scene"], "spacing": _scene_spacing(saved)}
+        saved["scene"].pop("voxel", None)
+        differ = _differences(saved, self.config.to_dict())
         if differ:
             raise ValueError(f"{self.checkpoint_path} was made with a different configuration ({differ}); "
                              "resume with the same flags or use a new run folder")
@@ -589,7 +592,7 @@ def _validation_scenes(config: TrainConfig):
         return None
     from perception.synthetic.dataset import load_preset
 
-    return load_preset("val50", progress=False, limit=config.validation_scenes, spacing=config.scene.voxel)
+    return load_preset("val50", progress=False, limit=config.validation_scenes, spacing=config.scene.spacing)
 
 
 def _log_losses(rec: rr.RecordingStream | None, iteration: int, losses: dict[str, float]) -> None:
@@ -675,12 +678,18 @@ def save_weights(model: MushroomNet, path: Path, **meta) -> None:
                   "point_spacing": model.point_spacing, "inference_zoom": model.inference_zoom}, Path(path))
 
 
+def _scene_spacing(train_config: dict) -> float | None:
+    """The training beds' point spacing a saved TrainConfig gives (older run files name it ``voxel``)."""
+    scene = train_config.get("scene") or {}
+    return scene.get("spacing", scene.get("voxel"))
+
+
 def load_weights(path: Path, device: str = "cpu") -> tuple[MushroomNet, dict]:
     """A trained network and its metadata from a weights file (model.pt) or a checkpoint."""
     try:
         state = torch.load(path, map_location=device, weights_only=False)
         network = NetworkConfig.from_dict(state["network"])
-        spacing = state.get("point_spacing") or ((state.get("train_config") or {}).get("scene") or {}).get("voxel")
+        spacing = state.get("point_spacing") or _scene_spacing(state.get("train_config") or {})
         model = MushroomNet(network, point_spacing=spacing,
                             inference_zoom=state.get("inference_zoom", UNRECORDED_ZOOM)).to(device)
         model.load_state_dict(state["model"])

@@ -28,7 +28,7 @@ def write_tiny_weights(path):
     from perception.synthetic.scene import SceneConfig
     from perception.train import save_weights
 
-    model = MushroomNet(tiny_network_config(), point_spacing=SceneConfig().voxel).eval()
+    model = MushroomNet(tiny_network_config(), point_spacing=SceneConfig().spacing).eval()
     with torch.no_grad():
         model.head[-1].bias[0] = -3.0
     save_weights(model, path, iterations=0)

@@ -81,7 +81,7 @@ def test_train_flags_set_the_loss_weights_and_defaults_are_the_papers():
         parse(["train", "--out", "RUN", "--zoom", "3"])
     assert refused.value.code == 2
     spaced = train_config(parse(["train", "--out", "RUN", "--spacing", "0.004"]))
-    assert spaced.scene.voxel == 0.004 and spaced.scene == type(default.scene)(voxel=0.004)
+    assert spaced.scene.spacing == 0.004 and spaced.scene == type(default.scene)(spacing=0.004)
 
 
 def test_every_train_config_field_is_a_flag():
@@ -102,7 +102,7 @@ def test_every_train_config_field_is_a_flag():
     changed = {name for name, value in vars(config).items() if value != getattr(TrainConfig(), name)}
     assert changed == set(vars(config)), set(vars(config)) - changed
     assert config.init_weights.endswith("/start.pt") and config.point_dropout == (0.1, 0.3)
-    assert config.scene == SceneConfig(voxel=0.004, scale=(0.7, 1.2), jitter=(0.9, 1.1))
+    assert config.scene == SceneConfig(spacing=0.004, scale=(0.7, 1.2), jitter=(0.9, 1.1))
 
 
 def test_config_flags_are_read_from_the_source_as_the_dataclass_has_them():
@@ -187,7 +187,7 @@ def test_the_parser_restates_its_choices_as_the_libraries_define_them():
     from pipeline import sources
 
     assert (CLUSTERING, CAMERAS, VISIBILITY) == (METHODS, sources.CAMERAS, VISIBILITY_MODELS)
-    assert SPACING_HELP.startswith(f"{SceneConfig.voxel:g},")
+    assert SPACING_HELP.startswith(f"{SceneConfig.spacing:g},")
     assert SHIPPED_ZOOM == load_weights(DEFAULT_WEIGHTS)[0].inference_zoom
 
 

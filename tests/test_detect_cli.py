@@ -296,7 +296,7 @@ def test_detect_warns_outside_the_operating_range(tmp_path, weights):
     """A bed sampled every 5 mm is sparser than the model holds to; the same bed at 3 mm is not. The
     tiny model finds no caps on either, which detect also says."""
     for spacing in (0.003, 0.005):
-        scene = generate_scene(11, SceneConfig(voxel=spacing, jitter=(1.0, 1.0)))
+        scene = generate_scene(11, SceneConfig(spacing=spacing, jitter=(1.0, 1.0)))
         cloud = write_ply(tmp_path / f"bed{spacing}.ply", scene.points)
         result = run("detect", cloud, "--out", tmp_path / "d.json", "--model", weights, "--bed-frame")
         assert result.returncode == 0, result.stderr

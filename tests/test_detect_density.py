@@ -12,7 +12,7 @@ from perception.model import MushroomNet
 from perception.synthetic.scene import SceneConfig, generate_scene
 
 TINY = tiny_network_config()
-SPACING = SceneConfig().voxel
+SPACING = SceneConfig().spacing
 
 
 @pytest.mark.parametrize("zoom", [1.0, 1.1])
@@ -68,10 +68,10 @@ def test_a_model_thins_clouds_to_the_spacing_it_was_trained_at(tmp_path):
     from perception.train import TrainConfig, load_weights, save_weights
 
     torch.manual_seed(0)
-    points = generate_scene(3, SceneConfig(mushrooms=(5, 5), voxel=0.003)).points
+    points = generate_scene(3, SceneConfig(mushrooms=(5, 5), spacing=0.003)).points
     for spacing in (0.003, 0.0051):
         path = tmp_path / f"{spacing}.pt"
-        save_weights(MushroomNet(TINY), path, train_config=TrainConfig(scene=SceneConfig(voxel=spacing)).to_dict())
+        save_weights(MushroomNet(TINY), path, train_config=TrainConfig(scene=SceneConfig(spacing=spacing)).to_dict())
         model, _ = load_weights(path)
         assert model.point_spacing == spacing
         kept = voxel_representatives(points, spacing)
@@ -108,8 +108,8 @@ def test_a_sparser_cloud_is_read_at_a_lower_zoom(tmp_path):
 
     model, _ = load_weights(write_tiny_weights(tmp_path / "tiny.pt"))
     model.inference_zoom = 1.2
-    dense = generate_scene(7, SceneConfig(voxel=model.point_spacing, jitter=(1.0, 1.0)))
-    sparse = generate_scene(7, SceneConfig(voxel=0.005, jitter=(1.0, 1.0)))
+    dense = generate_scene(7, SceneConfig(spacing=model.point_spacing, jitter=(1.0, 1.0)))
+    sparse = generate_scene(7, SceneConfig(spacing=0.005, jitter=(1.0, 1.0)))
     assert reading_zoom(model, dense.points) == pytest.approx(1.2, abs=0.02)
     assert 0.85 < reading_zoom(model, sparse.points) < 0.97
     model.point_spacing = None

@@ -91,9 +91,9 @@ def test_zbuffer_visibility_agrees_with_exact_ray_casting():
     rng = np.random.default_rng(5)
     config = SceneConfig()
     bed = build_bed(rng, config)
-    points, _, normals = _sample_surface(rng, bed, 3 / config.voxel**2)
+    points, _, normals = _sample_surface(rng, bed, 3 / config.spacing**2)
     eye, target = np.array([0.03, -0.05, 0.55]), np.zeros(3)
-    visible = visible_from(points, normals, eye, target, pixel=0.7 * config.voxel)
+    visible = visible_from(points, normals, eye, target, pixel=0.7 * config.spacing)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(bed.vertices.astype(np.float32)),
                         o3d.core.Tensor(bed.triangles.astype(np.uint32)))
@@ -172,8 +172,8 @@ def test_a_preset_at_another_spacing_is_the_same_beds_cached_apart(tmp_path, mon
     assert len({f.parent for f in tmp_path.rglob("*.npz")}) == 2
     np.testing.assert_array_equal(default.centers, coarse.centers)
     jitter = SceneConfig().jitter
-    assert jitter[0] * 0.0051 <= coarse.voxel <= jitter[1] * 0.0051
-    assert jitter[0] * SceneConfig().voxel <= default.voxel <= jitter[1] * SceneConfig().voxel
+    assert jitter[0] * 0.0051 <= coarse.spacing <= jitter[1] * 0.0051
+    assert jitter[0] * SceneConfig().spacing <= default.spacing <= jitter[1] * SceneConfig().spacing
     assert len(default.points) > 2 * len(coarse.points)
 
 

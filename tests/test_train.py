@@ -188,8 +188,8 @@ def test_resume_with_other_flags_is_refused(tmp_path, tiny_network):
     train(config, tmp_path, progress=False, rerun=False, stop_at=1)
     with pytest.raises(ValueError, match=r"different configuration \(lr: 0.001 there, 0.5 here\)"):
         train(TrainConfig(**{**config.__dict__, "lr": 0.5}), tmp_path, resume=True, progress=False, rerun=False)
-    with pytest.raises(ValueError, match=r"\(scene.voxel: [0-9.]+ there, 0.0051 here\)"):
-        train(replace(config, scene=replace(config.scene, voxel=0.0051)), tmp_path, resume=True, progress=False,
+    with pytest.raises(ValueError, match=r"\(scene.spacing: [0-9.]+ there, 0.0051 here\)"):
+        train(replace(config, scene=replace(config.scene, spacing=0.0051)), tmp_path, resume=True, progress=False,
               rerun=False)
 
 

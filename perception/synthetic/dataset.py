@@ -44,11 +44,11 @@ def cache_root() -> Path:
 def preset_config(name: str, visibility: str = "hpr", spacing: float | None = None) -> SceneConfig:
     """A preset's scene settings, with another visibility model or point spacing when asked."""
     config = PRESETS[name].config
-    return replace(config, visibility=visibility, voxel=config.voxel if spacing is None else spacing)
+    return replace(config, visibility=visibility, spacing=config.spacing if spacing is None else spacing)
 
 
 def preset_dir(name: str, config: SceneConfig) -> Path:
-    return cache_root() / "synthetic" / f"{name}-{config.visibility}-{1000 * config.voxel:g}mm-v{GENERATOR_VERSION}"
+    return cache_root() / "synthetic" / f"{name}-{config.visibility}-{1000 * config.spacing:g}mm-v{GENERATOR_VERSION}"
 
 
 def scene_path(out_dir: Path, index: int) -> Path:

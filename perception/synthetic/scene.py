@@ -24,8 +24,9 @@ from perception.synthetic.terrain import (TERRAINS, Distractor, deform_along_nor
 VISIBILITY_MODELS = ("hpr", "camera", "katz")
 """hpr: hidden point removal by z-buffer (fast); camera: the virtual depth camera; katz: the paper's
 spherical-flip operator (Open3D), slow, kept for reproducing the paper exactly."""
-GENERATOR_VERSION = 2
-"""Bumped whenever the same seed would give a different scene (invalidates cached presets)."""
+GENERATOR_VERSION = 3
+"""Bumped whenever the same seed would give a different scene or the saved fields change (invalidates
+cached presets)."""
 
 
 @dataclass(frozen=True)
@@ -43,8 +44,8 @@ class SceneConfig:
     distractors: tuple[int, int] = (0, 6)
     terrain: str | None = None
     """One of TERRAINS, or None for a random one per scene."""
-    voxel: float = 0.003
-    """Point spacing (metres): the down-sampling voxel of the visibility step, jittered by ``jitter``.
+    spacing: float = 0.003
+    """Point spacing (metres): the down-sampling cell of the visibility step, jittered by ``jitter``.
     Finer than the network's 4.1-4.5 mm voxel, so that every voxel the surface crosses holds a point,
     as in a depth camera's or a fused cloud (DESIGN.md section 6b: 1.2 mm spacing). At 5.1 mm a cap is
     a gappy shell of voxels (``perception.detect.predict``)."""
@@ -65,8 +66,8 @@ class SceneConfig:
             raise ValueError(f"unknown visibility model {self.visibility!r}; choose one of {VISIBILITY_MODELS}")
         if self.terrain is not None and self.terrain not in TERRAINS:
             raise ValueError(f"unknown terrain {self.terrain!r}; choose one of {TERRAINS}")
-        if self.voxel <= 0 or self.bed_size <= 0:
-            raise ValueError("voxel and bed size must be positive")
+        if self.spacing <= 0 or self.bed_size <= 0:
+            raise ValueError("spacing and bed size must be positive")
 
 
 @dataclass(frozen=True)
@@ -103,7 +104,8 @@ class SyntheticScene:
     seed: int
     terrain: str
     visibility: str
-    voxel: float
+    spacing: float
+    """This bed's point spacing in metres (``SceneConfig.spacing`` times its jitter)."""
 
     @property
     def targets(self) -> EncodingTargets:
@@ -128,7 +130,7 @@ class SyntheticScene:
     def load(path) -> "SyntheticScene":
         with np.load(path) as data:
             values = {f.name: data[f.name] for f in fields(SyntheticScene)}
-        for name, kind in (("seed", int), ("terrain", str), ("visibility", str), ("voxel", float)):
+        for name, kind in (("seed", int), ("terrain", str), ("visibility", str), ("spacing", float)):
             values[name] = kind(values[name])
         return SyntheticScene(**values)
 
@@ -323,7 +325,7 @@ def visible_from(points: np.ndarray, normals: np.ndarray, eye: np.ndarray, targe
     return facing & (depth <= zbuffer[iv, iu] + tolerance)
 
 
-def _visible_points(rng, bed: BedMeshes, config: SceneConfig, voxel: float, eye, target):
+def _visible_points(rng, bed: BedMeshes, config: SceneConfig, spacing: float, eye, target):
     """Visible points at the scene's density and the triangle each came from."""
     if config.visibility == "camera":
         intrinsics = CameraIntrinsics.realsense_d405()
@@ -336,13 +338,13 @@ def _visible_points(rng, bed: BedMeshes, config: SceneConfig, voxel: float, eye,
         hit = triangle >= 0
         points, triangle = points[hit], triangle[hit]
     else:
-        density = config.oversample * rng.uniform(*config.jitter) / voxel**2
+        density = config.oversample * rng.uniform(*config.jitter) / spacing**2
         points, triangle, normals = _sample_surface(rng, bed, density, eye if config.visibility == "hpr" else None)
         if config.visibility == "hpr":
-            visible = visible_from(points, normals, eye, target, pixel=0.7 * voxel)
+            visible = visible_from(points, normals, eye, target, pixel=0.7 * spacing)
             points, triangle = points[visible], triangle[visible]
         else:
-            keep = voxel_representatives(points, voxel)
+            keep = voxel_representatives(points, spacing)
             points, triangle = points[keep], triangle[keep]
             cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
             diameter = float(np.linalg.norm(points.max(0) - points.min(0)))
@@ -350,7 +352,7 @@ def _visible_points(rng, bed: BedMeshes, config: SceneConfig, voxel: float, eye,
             visible = np.sort(np.asarray(visible))
             points, triangle = points[visible], triangle[visible]
     if config.visibility != "katz":
-        keep = voxel_representatives(points, voxel)
+        keep = voxel_representatives(points, spacing)
         points, triangle = points[keep], triangle[keep]
     inside = (np.abs(points[:, :2]) <= config.bed_size / 2).all(1)
     return points[inside], triangle[inside]
@@ -360,9 +362,9 @@ def generate_scene(seed: int, config: SceneConfig = SceneConfig()) -> SyntheticS
     """One synthetic bed; the same seed and config give the same scene on any machine."""
     rng = np.random.default_rng(seed)
     bed = build_bed(rng, config)
-    voxel = config.voxel * rng.uniform(*config.jitter)
+    spacing = config.spacing * rng.uniform(*config.jitter)
     eye, target = _viewpoint(rng, config)
-    points, triangle = _visible_points(rng, bed, config, voxel, eye, target)
+    points, triangle = _visible_points(rng, bed, config, spacing, eye, target)
     instance = bed.triangle_instance[triangle]
     is_cap = bed.triangle_is_cap[triangle]
     targets = encode(points, instance, is_cap, bed.centers, bed.rotations, bed.scales)
@@ -370,4 +372,4 @@ def generate_scene(seed: int, config: SceneConfig = SceneConfig()) -> SyntheticS
     visible = np.bincount(instance[is_cap], minlength=k)[:k] if k else np.zeros(0, np.int64)
     return SyntheticScene(points.astype(np.float32), is_cap, instance, bed.centers, bed.rotations, bed.scales,
                           targets.existence, targets.residual, targets.orientation, visible, eye, int(seed),
-                          bed.terrain, config.visibility, float(voxel))
+                          bed.terrain, config.visibility, float(spacing))

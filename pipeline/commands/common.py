@@ -153,7 +153,7 @@ parse_zoom = at_least(at_most(positive(float), 2.0, " (the network would read ca
 # Named here, not imported, because the parser imports no numpy (Ctrl-C while libraries load); tests
 # hold them to their sources.
 SPACING_HELP = "0.003, the generator's: every 4.5 mm voxel a surface crosses holds a point"
-"""SceneConfig.voxel and what it gives."""
+"""SceneConfig.spacing and what it gives."""
 SHIPPED_ZOOM = 1.2
 """The zoom the shipped model's weights record (trained with --scale-jitter 1.05 1.35)."""
 CLUSTERING = ("meanshift", "dbscan")

@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
             f", read at {read_at}" + \
             (f" (first {len(scenes)} scenes)" if args.scenes else "")
         print(eval_table(label, results))
-        spacing = preset_config(name, args.visibility, args.spacing).voxel
+        spacing = preset_config(name, args.visibility, args.spacing).spacing
         report[name] = {method: {**result.as_dict(), "spacing": spacing, "zoom": zoom or model.inference_zoom,
                                  "zoom_lowered_where_sparser": zoom is None}
                         for method, result in results.items()}

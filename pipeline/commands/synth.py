@@ -51,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
         config = preset_config(args.preset, args.visibility, args.spacing)
     else:
         seeds = scene_seeds(args.seed, args.scenes)
-        config = SceneConfig(mushrooms=(low, high), visibility=args.visibility, voxel=args.spacing or SceneConfig.voxel)
+        config = SceneConfig(mushrooms=(low, high), visibility=args.visibility, spacing=args.spacing or SceneConfig.spacing)
     mushrooms, points, started = [], [], time.perf_counter()
     with rerun_stream(rrd) as rec:
         for index, scene in enumerate(generate_many(seeds, config, progress=not args.quiet,

@@ -40,14 +40,14 @@ TRAIN_FLAGS = {
 (pipeline.flags.FLAG_KEYS)."""
 
 SCENE_FLAGS = {
-    "voxel": {"name": "spacing", "parse": parse_spacing, "metavar": "M",
-              "help": "Point spacing of the training beds in metres (perception.synthetic.scene.SceneConfig.voxel)."},
+    "spacing": {"name": "spacing", "parse": parse_spacing, "metavar": "M",
+                "help": "Point spacing of the training beds in metres."},
     "jitter": {"name": "spacing-jitter", "parse": positive(float), "metavar": RANGE,
                "help": "Each bed's point spacing is --spacing times a factor from [low, high]."},
     "scale": {"name": "cap-scale", "parse": positive(float), "metavar": RANGE,
               "help": "Cap scale s of the training beds, a 40 mm cap at s = 1 (the paper's)."},
 }
-"""The fields of TrainConfig.scene that are train flags; SceneConfig documents none of these three."""
+"""The fields of TrainConfig.scene that are train flags, with help written for the command line."""
 
 NAME = "train"
 HELP = "train the network on fresh synthetic beds (resumable)"
