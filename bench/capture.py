@@ -18,7 +18,7 @@ import numpy as np  # noqa: E402
 
 from capture.mcap_io import McapRecorder, McapSource  # noqa: E402
 from capture.virtual import sense_view  # noqa: E402
-from pipeline.sources import VirtualBedRig, virtual_bed_source  # noqa: E402
+from pipeline.sources import VirtualBed, virtual_bed_source  # noqa: E402
 from pipeline.process import reuse_freed_memory  # noqa: E402
 
 
@@ -28,7 +28,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
     reuse_freed_memory()
-    source, _ = virtual_bed_source(VirtualBedRig(views=args.frames))
+    source, _ = virtual_bed_source(VirtualBed(views=args.frames))
     frames, render_s = [], []
     with source:
         while True:

@@ -10,7 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-PRESETS = ("slim-no", "slim-no-explicit-centre", "slim-no-explicit-orientation")
+RUNS = ("slim-no", "slim-no-explicit-centre", "slim-no-explicit-orientation")
 """perception.paper_tables.ENCODING_RUNS, without importing the project (this script only starts runs)."""
 RECIPE = ["--weight-orientation", "10", "--orientation-on-caps", "--validation-scenes", "0", "--seed", "0",
           "--threads", "1"]
@@ -22,7 +22,7 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=800)
     args = parser.parse_args()
     command = [str(Path(sys.executable).with_name("mushroom-pose")), "train"]
-    for preset in PRESETS:
+    for preset in RUNS:
         run = args.out / preset
         if (run / "model.pt").is_file():
             print(f"{run}: done")

@@ -34,7 +34,7 @@ from capture.source import Source  # noqa: E402
 from perception.detect import DEFAULT_WEIGHTS, detect_points  # noqa: E402
 from perception.train import load_weights  # noqa: E402
 from pipeline.process import reuse_freed_memory  # noqa: E402
-from pipeline.sources import VirtualBedRig, virtual_bed_source  # noqa: E402
+from pipeline.sources import VirtualBed, virtual_bed_source  # noqa: E402
 
 FPS = 15.0
 VIEWS = 18
@@ -42,7 +42,7 @@ VIEWS = 18
 
 def turn_frames(seed: int, start_ns: int):
     """One 18-view turn over bed ``seed``, its clock starting at ``start_ns``."""
-    source, _ = virtual_bed_source(VirtualBedRig(seed=seed, views=VIEWS, fps=FPS, start_ns=start_ns))
+    source, _ = virtual_bed_source(VirtualBed(seed=seed, views=VIEWS, fps=FPS, start_ns=start_ns))
     with source:
         return list(source)
 

@@ -29,7 +29,7 @@ from perception.evaluate import evaluate  # noqa: E402
 from perception.train import load_weights  # noqa: E402
 from pipeline.process import reuse_freed_memory  # noqa: E402
 from pipeline.runner import RunConfig, Runner  # noqa: E402
-from pipeline.sources import VirtualBedRig, virtual_bed_source  # noqa: E402
+from pipeline.sources import VirtualBed, virtual_bed_source  # noqa: E402
 
 MIN_CAP_POINTS, ON_SURFACE = 5, 0.002
 SETTINGS = {"1 view": (0,), "2 cameras (opposite sides)": (0, 9), "4 views": (0, 4, 9, 13),
@@ -74,7 +74,7 @@ def main() -> None:
     points = {name: [] for name in SETTINGS}
     all_caps = 0
     for seed in range(args.beds):
-        source, bed = virtual_bed_source(VirtualBedRig(seed=100 + seed, views=18))
+        source, bed = virtual_bed_source(VirtualBed(seed=100 + seed, views=18))
         all_caps += len(bed.centers)
         frames = list(source)
         for name, indices in SETTINGS.items():

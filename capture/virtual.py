@@ -124,7 +124,7 @@ def to_depth_frame(depth_m: np.ndarray, intrinsics: CameraIntrinsics, sensor: Se
                       timestamp_ns, sensor_id, None, T_world_camera, turntable_angle)
 
 
-def circle_rig(target: np.ndarray, radius: float, height: float,
+def circle_turntable(target: np.ndarray, radius: float, height: float,
                axis: np.ndarray = np.array([0.0, 0.0, 1.0])) -> Turntable:
     """A camera ``radius`` off the axis through ``target``, ``height`` above it, looking at ``target``."""
     axis = np.asarray(axis, np.float64) / np.linalg.norm(axis)

@@ -27,7 +27,7 @@ from tqdm import tqdm
 from common.files import atomic_path, write_atomically
 from perception.cap import cap_rotation
 from perception.encoding import encode
-from perception.model import (INFERENCE_ZOOM, LENGTH_UNIT, PRESETS as NETWORK_PRESETS, MushroomNet,
+from perception.model import (INFERENCE_ZOOM, LENGTH_UNIT, NETWORK_PRESETS, MushroomNet,
                               NetworkConfig, voxel_features)
 from perception.sparse import SparseTensor
 from perception.synthetic.scene import SceneConfig, generate_scene
@@ -71,7 +71,7 @@ class TrainConfig:
     validation reads at it. It belongs with ``scale_jitter``: a network trained on beds scaled by
     1.05-1.35 is read at 1.2. None: ``INFERENCE_ZOOM``, for the default jitter."""
     network: str = "slim-no"
-    """Network preset (perception.model.PRESETS): slim-no, the shipped model's (slim U-Net fed normals
+    """Network preset (perception.model.NETWORK_PRESETS): slim-no, the shipped model's (slim U-Net fed normals
     and each centroid's place in its voxel); slim-n (normals only); slim (occupancy only, as the paper);
     wide-no (slim-no with wider coarse levels); slim-no-k5 (slim-no with a 5^3 first convolution);
     lean-no (slim-no with 32 channels in the full-resolution up block); fcgf (the paper's full backbone)."""

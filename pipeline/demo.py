@@ -53,10 +53,10 @@ def _run(folder: Path, model, seed: int, views: int, rrd: bool, spawn: bool, pro
     from perception.evaluate import evaluate
     from pipeline.runner import FusionStage, RunConfig
     from pipeline.session import Outputs, run_chain
-    from pipeline.sources import VirtualBedRig, virtual_bed_source
+    from pipeline.sources import VirtualBed, virtual_bed_source
 
     start = time.perf_counter()
-    source, bed = virtual_bed_source(VirtualBedRig(seed=seed, views=views, start_ns=time.time_ns()))
+    source, bed = virtual_bed_source(VirtualBed(seed=seed, views=views, start_ns=time.time_ns()))
     scene_s = time.perf_counter() - start
     config = RunConfig(fusion=FusionStage(FusionConfig(angles="encoder"), Rig(source.config.turntable)))
     outputs = Outputs(record=folder / "session.mcap", rrd=folder / "demo.rrd" if rrd else None,

@@ -69,12 +69,12 @@ def recording_source(recording: Recording):
     from capture.source import Interleaved
     from capture.virtual import VirtualCameraConfig, VirtualSource
     from perception.synthetic.scene import SceneConfig, build_bed
-    from pipeline.sources import VirtualBedRig, virtual_bed_source
+    from pipeline.sources import VirtualBed, virtual_bed_source
 
     if recording.views:
-        rig = VirtualBedRig(seed=recording.seed, views=recording.views, start_ns=START_NS,
-                            mushrooms=recording.mushrooms)
-        return virtual_bed_source(rig)[0], 1
+        setup = VirtualBed(seed=recording.seed, views=recording.views, start_ns=START_NS,
+                           mushrooms=recording.mushrooms)
+        return virtual_bed_source(setup)[0], 1
     config = SceneConfig(mushrooms=recording.mushrooms) if recording.mushrooms else SceneConfig()
     bed = build_bed(np.random.default_rng(recording.seed), config)
     sources = []

@@ -12,7 +12,7 @@ CAMERAS = ("realsense", "oak", "virtual")
 
 
 @dataclass(frozen=True)
-class VirtualBedRig:
+class VirtualBed:
     """A synthetic bed under a virtual D405 on a turntable: the default scene of demo, record and tests."""
 
     seed: int = 0
@@ -30,16 +30,16 @@ class VirtualBedRig:
     """Turns to render (None: it keeps turning)."""
 
 
-def virtual_bed_source(rig: VirtualBedRig = VirtualBedRig(), sensor_id: str = "virtual"):
+def virtual_bed_source(setup: VirtualBed = VirtualBed(), sensor_id: str = "virtual"):
     """The source and the bed it looks at (meshes and true caps stay with the caller, for evaluation)."""
-    from capture.virtual import VirtualCameraConfig, VirtualSource, circle_rig
+    from capture.virtual import VirtualCameraConfig, VirtualSource, circle_turntable
     from perception.synthetic.scene import SceneConfig, build_bed
 
-    bed = build_bed(np.random.default_rng(rig.seed),
-                    SceneConfig(mushrooms=rig.mushrooms) if rig.mushrooms else SceneConfig())
-    config = VirtualCameraConfig(turntable=circle_rig(np.zeros(3), rig.radius, rig.height), views=rig.views,
-                                 fps=rig.fps, seed=rig.seed, sensor_id=sensor_id, start_ns=rig.start_ns,
-                                 turns=rig.turns)
+    bed = build_bed(np.random.default_rng(setup.seed),
+                    SceneConfig(mushrooms=setup.mushrooms) if setup.mushrooms else SceneConfig())
+    config = VirtualCameraConfig(turntable=circle_turntable(np.zeros(3), setup.radius, setup.height), views=setup.views,
+                                 fps=setup.fps, seed=setup.seed, sensor_id=sensor_id, start_ns=setup.start_ns,
+                                 turns=setup.turns)
     return VirtualSource(bed.vertices, bed.triangles, config), bed
 
 
@@ -53,8 +53,8 @@ def make_source(camera: str, serial: str | None = None, seed: int = 0, views: in
 
         from capture.source import Paced
 
-        rig = VirtualBedRig(seed=seed, views=views, start_ns=time.time_ns() if live else 0, turns=None if live else 1)
-        source = virtual_bed_source(rig)[0]
+        setup = VirtualBed(seed=seed, views=views, start_ns=time.time_ns() if live else 0, turns=None if live else 1)
+        source = virtual_bed_source(setup)[0]
         return Paced(source) if live else source
     if camera == "realsense":
         from capture.realsense import RealSenseConfig, RealSenseSource

@@ -6,11 +6,11 @@ import pytest
 import torch
 
 from perception.detect import network_input, network_output
-from perception.model import LENGTH_UNIT, PRESETS, MushroomNet
+from perception.model import LENGTH_UNIT, NETWORK_PRESETS, MushroomNet
 from perception.pose import fit_caps
 from perception.train import TrainConfig, augmented_sample, explicit_targets, voxel_targets
 
-VOXEL = PRESETS["slim-no"].voxel
+VOXEL = NETWORK_PRESETS["slim-no"].voxel
 
 
 @pytest.fixture(scope="module")
@@ -71,7 +71,7 @@ def test_exact_explicit_predictions_give_back_every_caps_pose(sample):
                                                          ("explicit-orientation", (3,))])
 def test_the_network_decodes_each_encoding(encoding, orientation_shape):
     torch.manual_seed(0)
-    model = MushroomNet(PRESETS[f"slim-no-{encoding}" if encoding != "implicit" else "slim-no"]).eval()
+    model = MushroomNet(NETWORK_PRESETS[f"slim-no-{encoding}" if encoding != "implicit" else "slim-no"]).eval()
     points = np.random.default_rng(0).uniform(0, 0.05, (400, 3))
     coords, _, centroids = network_input(points, VOXEL)
     got_centroids, existence, centers, orientation = network_output(model, coords, centroids, 1.0)

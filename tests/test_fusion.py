@@ -11,13 +11,13 @@ import pytest
 from scipy.spatial import cKDTree
 
 from capture.frames import CameraIntrinsics, DepthFrame, frame_to_points
-from capture.virtual import VirtualCameraConfig, VirtualSource, circle_rig
+from capture.virtual import VirtualCameraConfig, VirtualSource, circle_turntable
 from common.geometry import Turntable, look_at, transform_points
 from fusion.cloud import FusedCloud, FusionConfig, Fuser, fuse, log_rerun
 from fusion.integrate import IntegrationConfig, smooth_depth
 from fusion.registration import RegistrationConfig, pose_change, prepare_view, refine_poses
 from fusion.turntable import Rig, estimate_rig, estimate_turntable
-from pipeline.sources import VirtualBedRig, virtual_bed_source
+from pipeline.sources import VirtualBed, virtual_bed_source
 
 VIEWS = 6
 SMALL = CameraIntrinsics.realsense_d405(424, 240)
@@ -33,8 +33,8 @@ def one_line_error(excinfo) -> str:
 @pytest.fixture(scope="module")
 def session():
     """Six views of a synthetic bed, the truth, and a prior off by up to 3 deg in angle and 5 mm in axis."""
-    _, bed = virtual_bed_source(VirtualBedRig(views=VIEWS))
-    turntable = circle_rig(np.zeros(3), 0.22, 0.42)
+    _, bed = virtual_bed_source(VirtualBed(views=VIEWS))
+    turntable = circle_turntable(np.zeros(3), 0.22, 0.42)
     config = VirtualCameraConfig(intrinsics=SMALL, turntable=turntable, views=VIEWS, seed=0)
     frames = list(VirtualSource(bed.vertices, bed.triangles, config))
     truth = np.stack([f.T_world_camera for f in frames])
@@ -295,7 +295,7 @@ def test_bed_plane_follows_cloddy_soil(seed):
 
     from fusion.bed import estimate_bed_frame
 
-    _, bed = virtual_bed_source(VirtualBedRig(seed=seed))
+    _, bed = virtual_bed_source(VirtualBed(seed=seed))
     soil = bed.vertices[np.unique(bed.triangles[bed.triangle_instance == -1])]
     coef = np.linalg.lstsq(np.c_[soil[:, :2], np.ones(len(soil))], soil[:, 2], rcond=None)[0]
     soil_normal = np.array([-coef[0], -coef[1], 1.0]) / np.linalg.norm([-coef[0], -coef[1], 1.0])
@@ -366,7 +366,7 @@ def test_streaming_and_batch_fusion_give_the_same_surface(session, streamed):
 def test_a_turn_ends_where_it_should_when_frames_were_dropped():
     """Frames 10-13 and 20 of three 12-view turns never reach fusion (a live camera ahead of it): the
     first turn ends before frame 14, a turn past frame 0; the second is frames 14-25 without 20."""
-    source, _ = virtual_bed_source(VirtualBedRig(seed=0, views=12, turns=3))
+    source, _ = virtual_bed_source(VirtualBed(seed=0, views=12, turns=3))
     with source:
         frames = [f for k, f in enumerate(source) if k not in (10, 11, 12, 13, 20)]
     fuser = Fuser(FusionConfig(refine=False))

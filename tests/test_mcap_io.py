@@ -57,7 +57,7 @@ def frames():
     (depth only) and a fixed camera "b" with colour, whose last frame has no known pose."""
     import open3d as o3d
 
-    from capture.virtual import VirtualCameraConfig, VirtualSource, circle_rig
+    from capture.virtual import VirtualCameraConfig, VirtualSource, circle_turntable
 
     slab = o3d.geometry.TriangleMesh.create_box(0.4, 0.4, 0.01).translate((-0.2, -0.2, -0.01))
     box = o3d.geometry.TriangleMesh.create_box(0.08, 0.06, 0.05).translate((-0.06, -0.03, 0.0))
@@ -66,7 +66,7 @@ def frames():
     vertices, triangles = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
     start = 1_700_000_000_000_000_000
     a = VirtualSource(vertices, triangles, VirtualCameraConfig(
-        INTRINSICS, turntable=circle_rig(np.zeros(3), 0.25, 0.3), views=4, sensor_id="a", start_ns=start))
+        INTRINSICS, turntable=circle_turntable(np.zeros(3), 0.25, 0.3), views=4, sensor_id="a", start_ns=start))
     poses = tuple(look_at(np.array([x, 0.05, 0.35]), np.zeros(3)) for x in (-0.1, 0.0, 0.1))
     b = VirtualSource(vertices, triangles, VirtualCameraConfig(
         INTRINSICS, poses=poses, sensor_id="b", start_ns=start + 33_333_333, seed=1))

@@ -79,11 +79,11 @@ def test_evaluation_on_ray_gives_the_local_metrics(local_ray):
 def test_a_run_trained_on_beds_made_by_ray_tasks_is_the_local_run(tmp_path, local_ray, monkeypatch):
     import torch
 
-    from perception.model import PRESETS, NetworkConfig
+    from perception.model import NETWORK_PRESETS, NetworkConfig
     from perception.synthetic.scene import SceneConfig
     from perception.train import TrainConfig, load_weights, train
 
-    monkeypatch.setitem(PRESETS, "tiny", NetworkConfig(channels=(8, 8, 8, 8), up_channels=(8, 8, 8, 8),
+    monkeypatch.setitem(NETWORK_PRESETS, "tiny", NetworkConfig(channels=(8, 8, 8, 8), up_channels=(8, 8, 8, 8),
                                                       first_kernel=3, head_hidden=(8, 8)))
     config = TrainConfig(iterations=3, network="tiny", checkpoint_every=3, validation_scenes=0,
                          scene=SceneConfig(mushrooms=(3, 5)), queue_size=2)

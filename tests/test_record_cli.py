@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from capture.mcap_io import McapSource
-from pipeline.sources import VirtualBedRig, virtual_bed_source
+from pipeline.sources import VirtualBed, virtual_bed_source
 from test_detect_cli import one_line_error, run
 
 
@@ -13,7 +13,7 @@ def test_record_virtual_round_trips_bit_exact(tmp_path):
     result = run("record", "--camera", "virtual", "--views", "3", "--seed", "2", "--out", out, "--quiet")
     assert result.returncode == 0, result.stderr
     assert "recorded 3 frames" in result.stdout
-    expected = list(virtual_bed_source(VirtualBedRig(seed=2, views=3))[0])
+    expected = list(virtual_bed_source(VirtualBed(seed=2, views=3))[0])
     with McapSource(out) as replay:
         got = list(replay)
     assert len(got) == len(expected) == 3
@@ -55,7 +55,7 @@ class UnpluggedAfter:
 def test_unplugged_camera_keeps_the_recording_and_says_so(tmp_path, monkeypatch):
     import pipeline.sources
 
-    frames = list(virtual_bed_source(VirtualBedRig(seed=1, views=3))[0])
+    frames = list(virtual_bed_source(VirtualBed(seed=1, views=3))[0])
     monkeypatch.setattr(pipeline.sources, "make_source", lambda *a, **k: UnpluggedAfter(frames))
     out = tmp_path / "cut.mcap"
     one_line_error(run("record", "--camera", "realsense", "--out", out, "--quiet"), "unplugged")
@@ -83,7 +83,7 @@ def test_a_recording_that_fails_inside_its_first_frame_keeps_the_old_file(tmp_pa
 
     import pipeline.sources
 
-    frame = next(iter(virtual_bed_source(VirtualBedRig(seed=1, views=1))[0]))
+    frame = next(iter(virtual_bed_source(VirtualBed(seed=1, views=1))[0]))
     broken = dataclasses.replace(frame, T_world_camera=np.full((4, 4), np.nan))
     monkeypatch.setattr(pipeline.sources, "make_source", lambda *a, **k: UnpluggedAfter([broken]))
     out = tmp_path / "old.mcap"
@@ -110,7 +110,7 @@ def test_a_recording_of_no_frames_is_an_error_and_keeps_the_old_file(tmp_path, m
     import pipeline.sources
 
     if source_frames is None:
-        source_frames = list(virtual_bed_source(VirtualBedRig(seed=1, views=1))[0])
+        source_frames = list(virtual_bed_source(VirtualBed(seed=1, views=1))[0])
     monkeypatch.setattr(pipeline.sources, "make_source", lambda *a, **k: EndsAfter(source_frames))
     out = tmp_path / "old.mcap"
     out.write_bytes(b"an earlier session")
@@ -162,7 +162,7 @@ def test_calibrate_recovers_the_virtual_turntable(tmp_path):
     result = run("calibrate", "--session", session, "--out", tmp_path / "rig.json")
     assert result.returncode == 0, result.stderr
     rig = Rig.load(tmp_path / "rig.json")
-    # the virtual rig turns about +z through the bed centre (pipeline.sources.VirtualBedRig), 45 deg a view.
+    # the virtual rig turns about +z through the bed centre (pipeline.sources.VirtualBed), 45 deg a view.
     # Measured on sessions of beds 0-4 (record --seed): axis 0.004-0.019 deg off, through 0.02-0.15 mm of
     # the centre, step off by 0.0003-0.0067 deg; bounds twice the worst
     axis = np.asarray(rig.turntable.axis_direction) * np.sign(rig.turntable.axis_direction[2])

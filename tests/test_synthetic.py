@@ -6,7 +6,7 @@ import pytest
 
 from perception.cap import CAP_HEIGHT_RATIO, CAP_RADIUS_AT_UNIT_SCALE, tilt_deg
 from perception.encoding import encode
-from perception.synthetic.dataset import PRESETS, load_preset, scene_seeds
+from perception.synthetic.dataset import BED_SETS, load_preset, scene_seeds
 from perception.synthetic.scene import (SceneConfig, SyntheticScene, _sample_surface, build_bed, generate_scene,
                                         visible_from)
 from perception.synthetic.template import mushroom_template
@@ -151,10 +151,10 @@ def test_scene_round_trips_through_npz(tmp_path):
 
 
 def test_presets_have_fixed_distinct_seeds_and_are_cached(tmp_path, monkeypatch):
-    assert scene_seeds(PRESETS["val50"].seed, 50) == scene_seeds(PRESETS["val50"].seed, 50)
-    assert not set(scene_seeds(PRESETS["val50"].seed, 50)) & set(scene_seeds(PRESETS["test50"].seed, 50))
+    assert scene_seeds(BED_SETS["val50"].seed, 50) == scene_seeds(BED_SETS["val50"].seed, 50)
+    assert not set(scene_seeds(BED_SETS["val50"].seed, 50)) & set(scene_seeds(BED_SETS["test50"].seed, 50))
     monkeypatch.setenv("MUSHROOM_POSE_CACHE", str(tmp_path))
-    monkeypatch.setitem(PRESETS, "tiny", PRESETS["val50"].__class__(seed=3, scenes=3))
+    monkeypatch.setitem(BED_SETS, "tiny", BED_SETS["val50"].__class__(seed=3, scenes=3))
     first = load_preset("tiny", progress=False)
     files = sorted(tmp_path.rglob("*.npz"))
     assert len(files) == 3
@@ -166,7 +166,7 @@ def test_presets_have_fixed_distinct_seeds_and_are_cached(tmp_path, monkeypatch)
 
 def test_a_preset_at_another_spacing_is_the_same_beds_cached_apart(tmp_path, monkeypatch):
     monkeypatch.setenv("MUSHROOM_POSE_CACHE", str(tmp_path))
-    monkeypatch.setitem(PRESETS, "tiny", PRESETS["val50"].__class__(seed=3, scenes=1))
+    monkeypatch.setitem(BED_SETS, "tiny", BED_SETS["val50"].__class__(seed=3, scenes=1))
     default, = load_preset("tiny", progress=False)
     coarse, = load_preset("tiny", progress=False, spacing=0.0051)
     assert len({f.parent for f in tmp_path.rglob("*.npz")}) == 2
@@ -190,7 +190,7 @@ def test_voxel_representatives_keep_the_first_point_of_every_voxel():
 
 def test_a_corrupt_cached_scene_is_made_again(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("MUSHROOM_POSE_CACHE", str(tmp_path / "cache"))
-    monkeypatch.setitem(PRESETS, "tiny", PRESETS["val50"].__class__(seed=3, scenes=2))
+    monkeypatch.setitem(BED_SETS, "tiny", BED_SETS["val50"].__class__(seed=3, scenes=2))
     first = load_preset("tiny", progress=False)
     broken = sorted((tmp_path / "cache").rglob("*.npz"))[1]
     broken.write_bytes(broken.read_bytes()[:100])

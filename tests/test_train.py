@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from perception.model import INFERENCE_ZOOM, LENGTH_UNIT, PRESETS, MushroomNet, NetworkConfig
+from perception.model import INFERENCE_ZOOM, LENGTH_UNIT, NETWORK_PRESETS, MushroomNet, NetworkConfig
 from perception.sparse import SparseTensor
 from perception.synthetic.scene import SceneConfig
 from perception.train import (UNRECORDED_ZOOM, TrainConfig, TrainingError, augmented_sample, load_weights,
@@ -18,7 +18,7 @@ SMALL_SCENES = SceneConfig(mushrooms=(3, 5))
 
 @pytest.fixture
 def tiny_network(monkeypatch):
-    monkeypatch.setitem(PRESETS, "tiny", TINY)
+    monkeypatch.setitem(NETWORK_PRESETS, "tiny", TINY)
     return "tiny"
 
 
@@ -141,7 +141,7 @@ def test_fine_tuning_starts_from_the_given_weights_and_adds_their_cost(tmp_path,
     assert meta["init"]["sha256"] == base_hash and meta["init"]["total_iterations"] == 2
     assert meta["total_iterations"] == 4
     assert meta["total_train_seconds"] == pytest.approx(meta["train_seconds"] + base_meta["train_seconds"])
-    monkeypatch.setitem(PRESETS, "other", NetworkConfig(**{**TINY.__dict__, "channels": (8, 8, 8, 16)}))
+    monkeypatch.setitem(NETWORK_PRESETS, "other", NetworkConfig(**{**TINY.__dict__, "channels": (8, 8, 8, 16)}))
     with pytest.raises(ValueError, match="different network"):
         train(TrainConfig(**{**tuned_config.__dict__, "network": "other", "init_weights": str(base)}),
               tmp_path / "other", progress=False, rerun=False)
@@ -265,7 +265,7 @@ def test_batch_norms_folded_for_inference_give_the_same_outputs_and_follow_train
     from perception.sparse import SparseBatchNorm
 
     torch.manual_seed(3)
-    model = MushroomNet(replace(PRESETS["slim-no"], channels=(8, 8, 8, 8), up_channels=(8, 8, 8, 8)))
+    model = MushroomNet(replace(NETWORK_PRESETS["slim-no"], channels=(8, 8, 8, 8), up_channels=(8, 8, 8, 8)))
     norms = [m for m in model.modules() if isinstance(m, SparseBatchNorm)]
     with torch.no_grad():
         for norm in norms:  # statistics and affine terms far from a fresh norm's identity
@@ -314,7 +314,7 @@ def test_offset_features_place_each_centroid_inside_its_voxel():
 
 
 def test_training_with_normal_features_runs(tmp_path, monkeypatch):
-    monkeypatch.setitem(PRESETS, "tiny-n", NetworkConfig(**{**TINY.__dict__, "normals": True}))
+    monkeypatch.setitem(NETWORK_PRESETS, "tiny-n", NetworkConfig(**{**TINY.__dict__, "normals": True}))
     config = TrainConfig(iterations=2, network="tiny-n", validation_scenes=0, scene=SMALL_SCENES)
     model, _ = load_weights(train(config, tmp_path, progress=False, rerun=False))
     assert model.conv1.weight.shape[1] == 4
@@ -456,7 +456,7 @@ def test_training_learns_one_bed_by_heart(tmp_path, monkeypatch):
     import perception.train as training
     from perception.detect import detect_points
 
-    monkeypatch.setitem(PRESETS, "overfit", OVERFIT)
+    monkeypatch.setitem(NETWORK_PRESETS, "overfit", OVERFIT)
     config = TrainConfig(iterations=300, lr=3e-3, milestones=(0.8,), network="overfit", validation_scenes=0,
                          checkpoint_every=1000, rotate_z=False, tilt_deg=0.0, noise=0.0, point_dropout=(0.0, 0.0),
                          scale_jitter=(1.0, 1.0), scene=SceneConfig(mushrooms=(6, 6), bed_size=0.25))

@@ -16,15 +16,17 @@ from perception.synthetic.scene import GENERATOR_VERSION, SceneConfig, Synthetic
 
 
 @dataclass(frozen=True)
-class Preset:
+class BedSet:
+    """A fixed set of synthetic beds (val50, test50): scene k is made from the k-th seed of ``seed``."""
+
     seed: int
     scenes: int
     config: SceneConfig = SceneConfig()
 
 
-PRESETS = {
-    "val50": Preset(seed=2023_0617, scenes=50),
-    "test50": Preset(seed=2023_1001, scenes=50),
+BED_SETS = {
+    "val50": BedSet(seed=2023_0617, scenes=50),
+    "test50": BedSet(seed=2023_1001, scenes=50),
 }
 
 
@@ -43,7 +45,7 @@ def cache_root() -> Path:
 
 def preset_config(name: str, visibility: str = "hpr", spacing: float | None = None) -> SceneConfig:
     """A preset's scene settings, with another visibility model or point spacing when asked."""
-    config = PRESETS[name].config
+    config = BED_SETS[name].config
     return replace(config, visibility=visibility, spacing=config.spacing if spacing is None else spacing)
 
 
@@ -100,9 +102,9 @@ def load_preset(name: str, visibility: str = "hpr", progress: bool = True,
                 limit: int | None = None, spacing: float | None = None) -> list[SyntheticScene]:
     """The scenes (the first ``limit``) of a named preset, generated once and cached on disk (never
     committed); ``spacing`` makes the same beds at another point spacing."""
-    if name not in PRESETS:
-        raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
-    preset = PRESETS[name]
+    if name not in BED_SETS:
+        raise ValueError(f"unknown preset {name!r}; choose one of {sorted(BED_SETS)}")
+    preset = BED_SETS[name]
     config = preset_config(name, visibility, spacing)
     directory = preset_dir(name, config)
     seeds = scene_seeds(preset.seed, preset.scenes)

@@ -34,7 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from perception.synthetic.dataset import (PRESETS, generate_many, log_scene, preset_config, scene_seeds,
+    from perception.synthetic.dataset import (BED_SETS, generate_many, log_scene, preset_config, scene_seeds,
                                               write_scene)
     from perception.synthetic.scene import SceneConfig
     from pipeline.rerun_sink import rerun_stream, set_frame
@@ -46,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     rrd = writable_file(args.rrd)
     out = writable_dir(args.out)
     if args.preset:
-        preset = PRESETS[args.preset]
+        preset = BED_SETS[args.preset]
         seeds = scene_seeds(preset.seed, preset.scenes)
         config = preset_config(args.preset, args.visibility, args.spacing)
     else:
