@@ -15,7 +15,6 @@ sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__)
 import argparse  # noqa: E402
 import time  # noqa: E402
 
-import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from perception.cap import CAP_RADIUS_AT_UNIT_SCALE  # noqa: E402

@@ -10,7 +10,7 @@ import threading
 
 from pipeline.commands import (average, calibrate, cameras, demo, detect, evaluate, live, record, recover, replay,
                                synth, train)
-from pipeline.commands.common import CliError, replace_file as _replace_file  # noqa: F401 (tests import both here)
+from pipeline.commands.common import CliError
 from pipeline.process import reuse_freed_memory
 
 COMMANDS = (synth, train, average, detect, evaluate, demo, cameras, record, recover, live, replay, calibrate)

@@ -19,8 +19,6 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Callable
 
-import numpy as np
-
 from capture.frames import DepthFrame
 from capture.source import Source
 from fusion.cloud import FusedCloud, Fuser, FusionConfig, fuse

@@ -221,7 +221,7 @@ def test_an_ascii_ply_value_open3d_cannot_read_is_named(tmp_path, bad_rows, mess
 
 
 def test_a_failed_write_leaves_no_temporary_file(tmp_path):
-    from pipeline.cli import CliError, _replace_file
+    from pipeline.commands.common import CliError, replace_file as _replace_file
 
     target = tmp_path / "taken"
     target.mkdir()

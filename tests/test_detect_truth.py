@@ -22,7 +22,7 @@ import pytest
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.transform import Rotation
 
-from helpers import rerun_matrix, rrd_values
+from helpers import rrd_values
 from perception.synthetic.dataset import ground_truth_mask
 from perception.synthetic.scene import SceneConfig, generate_scene
 from test_detect_cli import run, write_ply

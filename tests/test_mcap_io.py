@@ -305,13 +305,13 @@ def _frames_in_closed_chunks(path, frames: int) -> int:
 
     parts, chunks = collections.Counter(), []
     with open(path, "rb") as file:
-        for record in StreamReader(file, emit_chunks=True).records:
-            if isinstance(record, Chunk):
-                chunks.append(breakup_chunk(record))
+        for item in StreamReader(file, emit_chunks=True).records:
+            if isinstance(item, Chunk):
+                chunks.append(breakup_chunk(item))
     for chunk in chunks[:-1]:
-        for record in chunk:
-            if isinstance(record, Message):
-                parts[record.log_time] += 1
+        for item in chunk:
+            if isinstance(item, Message):
+                parts[item.log_time] += 1
     # TickSource's frames have no colour and no pose: depth, calibration and meta
     assert len(chunks) > 2 and sum(parts.values()) < 3 * frames
     return sum(parts[20_000_000 * (k + 1)] == 3 for k in range(frames))
