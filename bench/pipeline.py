@@ -63,7 +63,7 @@ def replay(session: Path, model, realtime: bool, out: Path):
 
     out.mkdir()
     started = time.perf_counter()
-    result = run_replay(session, model, out, None, ReplayOptions(realtime=realtime), quiet=True)
+    result = run_replay(session, model, out, None, ReplayOptions(speed="realtime" if realtime else "max"), quiet=True)
     return result.summary, time.perf_counter() - started
 
 

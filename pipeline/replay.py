@@ -6,6 +6,7 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 from pipeline.check import CheckReport, Tolerances, compare
 from pipeline.runner import RunSummary
@@ -17,13 +18,22 @@ class ReplayError(ValueError):
 
 @dataclass(frozen=True)
 class ReplayOptions:
-    from_stage: str = "capture"
-    """capture: fuse the recorded frames again; fusion: perception on the recorded fused clouds."""
-    realtime: bool = False
-    """Deliver frames at their recorded pace, as a camera would (default: as fast as the chain runs)."""
-    rig: Path | None = None
+    """How a session is replayed; every field is a flag of ``mushroom-pose replay``."""
+
+    from_stage: Literal["capture", "fusion"] = "capture"
+    """capture: fuse the recorded frames again; fusion: detect on the recorded fused clouds."""
+    speed: Literal["max", "realtime"] = "max"
+    """max: as fast as the chain runs; realtime: at the recorded frame rate, as a camera delivers them."""
+    rig: str | None = None
+    """Rig file from mushroom-pose calibrate (a turntable, or several fixed cameras)."""
     window: int | None = None
-    clustering: str = "meanshift"
+    """One camera without a rig: fuse the last N frames, registered by ICP (default: each frame alone)."""
+    clustering: Literal["meanshift", "dbscan"] = "meanshift"
+    """How the network's cap-centre votes are grouped into caps."""
+
+    @property
+    def realtime(self) -> bool:
+        return self.speed == "realtime"
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Literal
 
 from capture.frames import DepthFrame
 from capture.source import Source
@@ -34,6 +34,7 @@ class FusionStage:
     config: FusionConfig = field(default_factory=FusionConfig)
     rig: Rig | None = None
     window: int | None = None
+    """One camera without a rig: fuse the last N frames, registered by ICP (default: each frame alone)."""
     recorded: tuple[FusedCloud, ...] | None = None
     """Fused clouds a session recorded: the frames pass through to the sinks unfused and perception
     reads these instead (``replay --from-stage fusion``)."""
@@ -43,7 +44,8 @@ class FusionStage:
 class PerceptionStage:
     """The model that reads each fused unit and how its instances are clustered."""
 
-    clustering: str = "meanshift"
+    clustering: Literal["meanshift", "dbscan"] = "meanshift"
+    """How the network's cap-centre votes are grouped into caps."""
 
 
 @dataclass(frozen=True)
@@ -55,12 +57,12 @@ class RunConfig:
     live: bool = False
     """A camera (drop the oldest waiting work when behind) rather than a file (wait for the chain)."""
     max_units: int | None = None
-    """Stop after this many fused units (``--turns``)."""
+    """Stop after this many fused units (turns of a turntable)."""
     duration_s: float | None = None
-    """Stop capturing after this many seconds of wall clock."""
+    """Stop capturing after this many seconds of wall clock (default: until the source ends)."""
     perception_threads: int | None = None
-    """Torch threads while fusion runs beside perception; None: every core but one, which fusion
-    keeps (both stages at full width on the same cores slow each other down more than they gain)."""
+    """Torch threads while fusion runs beside perception (default: every core but one, which fusion
+    keeps: both stages at full width on the same cores slow each other down more than they gain)."""
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,9 @@ class VirtualBed:
     """A synthetic bed under a virtual D405 on a turntable: the default scene of demo, record and tests."""
 
     seed: int = 0
+    """The virtual camera's bed: the synthetic generator's seed."""
     views: int = 18
+    """Virtual camera: views per turn of the turntable."""
     radius: float = 0.22
     """Camera distance from the turntable axis, metres."""
     height: float = 0.42

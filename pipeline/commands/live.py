@@ -7,20 +7,29 @@ import sys
 import time
 from pathlib import Path
 
-from pipeline.commands.common import (CAMERAS, CLUSTERING, STOP_EXIT, CliError, load_model, parse_seed, parse_threads,
-                                      positive, torch_threads, writable_file, written_files)
+from pipeline.commands.common import (CAMERAS, STOP_EXIT, CliError, load_model, parse_seed, parse_threads, positive,
+                                      torch_threads, writable_file, written_files)
 
 NAME = "live"
 HELP = "capture, fuse and detect as frames arrive, shown in Rerun and recorded"
 
+RUN_FLAGS = {"max_units": {"name": "turns", "parse": positive(int), "metavar": "N"},
+             "duration_s": {"name": "duration", "parse": positive(float), "metavar": "S"},
+             "queue_frames": {"parse": positive(int), "metavar": "N"},
+             "perception_threads": {"parse": parse_threads, "metavar": "N"}}
+"""RunConfig's flags: names and validators where the field's own are not enough."""
+STAGE_FLAGS = {"window": {"parse": positive(int), "metavar": "N"}}
+BED_FLAGS = {"seed": {"parse": parse_seed}, "views": {"parse": positive(int)}}
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from pipeline.flags import add_config_flags  # loads ast: only a parsed live pays it
+
     parser.add_argument("--camera", choices=CAMERAS, required=True)
     parser.add_argument("--serial", help="which camera (serial number or OAK MxId) when several are attached")
     parser.add_argument("--playback", help="RealSense: play this recorded device file (.db3) through the driver")
     parser.add_argument("--rig", help="rig file from mushroom-pose calibrate (turntable or several cameras)")
-    parser.add_argument("--window", type=positive(int), help="one camera without a rig: fuse the last N frames "
-                        "(registered by ICP) after every frame (default: each frame alone)")
+    add_config_flags(parser, "pipeline.runner:FusionStage", STAGE_FLAGS, only=("window",))
     parser.add_argument("--record", help="record the session (frames, fused clouds, caps) to this .mcap")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --record file")
     parser.add_argument("--rrd", help="save the Rerun recording to this .rrd")
@@ -28,13 +37,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     viewer = parser.add_mutually_exclusive_group()
     viewer.add_argument("--spawn", action="store_true", help="show the run in a Rerun viewer")
     viewer.add_argument("--serve", action="store_true", help="serve the Rerun web viewer (a headless machine)")
-    parser.add_argument("--duration", type=positive(float), help="seconds to capture (default: until the camera "
-                        "ends, --turns, or Ctrl-C)")
-    parser.add_argument("--turns", type=positive(int), help="stop after this many fused units (turns of a turntable)")
-    parser.add_argument("--seed", type=parse_seed, default=0, help="virtual camera: which synthetic bed")
-    parser.add_argument("--views", type=positive(int), default=18, help="virtual camera: views per turn")
+    add_config_flags(parser, "pipeline.runner:RunConfig", RUN_FLAGS, only=tuple(RUN_FLAGS))
+    add_config_flags(parser, "pipeline.sources:VirtualBed", BED_FLAGS, only=tuple(BED_FLAGS))
     parser.add_argument("--model", help="weights file (default: the shipped model)")
-    parser.add_argument("--clustering", choices=CLUSTERING, default="meanshift")
+    add_config_flags(parser, "pipeline.runner:PerceptionStage")
     parser.add_argument("--threads", type=parse_threads, help="torch threads (default: all cores)")
     parser.add_argument("--quiet", action="store_true", help="no line per fused unit")
 
@@ -55,6 +61,7 @@ def run(args: argparse.Namespace) -> int:
     from capture.mcap_io import graceful_stop
     from capture.source import SourceError
     from fusion.turntable import Rig
+    from pipeline.flags import config_from_args
     from pipeline.runner import FusionStage, PerceptionStage, RunConfig
     from pipeline.session import Outputs, run_chain
     from pipeline.sources import make_source
@@ -74,8 +81,8 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"{args.camera} camera: {error}") from None
     if args.camera == "virtual" and rig is None:
         rig = Rig(source.source.config.turntable)
-    config = RunConfig(fusion=FusionStage(rig=rig, window=args.window), perception=PerceptionStage(args.clustering),
-                       live=True, max_units=args.turns, duration_s=args.duration)
+    config = config_from_args(RunConfig, args, fusion=FusionStage(rig=rig, window=args.window),
+                              perception=config_from_args(PerceptionStage, args), live=True)
     outputs = Outputs(record=record, rrd=rrd, detections=detections, spawn=args.spawn, serve=args.serve,
                       name=f"live {args.camera} {time.strftime('%Y-%m-%d %H:%M:%S')}", quiet=args.quiet)
     with graceful_stop() as stop:

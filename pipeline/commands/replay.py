@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipeline.commands.common import (CLUSTERING, STOP_EXIT, CliError, add_ray_flag, load_model, model_path,
+from pipeline.commands.common import (STOP_EXIT, CliError, add_ray_flag, load_model, model_path,
                                       parse_threads, positive, ray_options, torch_threads, writable_dir,
                                       writable_file, written_files)
 
@@ -20,6 +20,9 @@ TOLERANCE_FLAGS = {
     "radius_pct": {"parse": positive(float), "help": "--check: how much a cap's radius may change, in per cent"},
 }
 """pipeline.check.Tolerances documents none of its fields: the flags' help is here."""
+REPLAY_OPTIONS = "pipeline.replay:ReplayOptions"
+OPTION_FLAGS = {"rig": {"metavar": "RIG_JSON"}, "window": {"parse": positive(int), "metavar": "N"}}
+"""How ReplayOptions' flags read their values, where the field's type is not enough."""
 
 NAME = "replay"
 HELP = "re-run fusion and perception on a recorded session; --check compares with the detections it recorded"
@@ -35,13 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="replay", help="output folder (default ./replay): replay.mcap, "
                         "detections.json, replay.rrd")
     parser.add_argument("--rrd", help="the Rerun recording (default OUT/replay.rrd)")
-    parser.add_argument("--from-stage", choices=["capture", "fusion"], default="capture",
-                        help="capture: fuse the recorded frames again (default); fusion: detect on the recorded "
-                             "fused clouds")
-    parser.add_argument("--speed", choices=["max", "realtime"], default="max",
-                        help="max: as fast as the chain runs (default); realtime: at the recorded frame rate")
-    parser.add_argument("--rig", help="rig file from mushroom-pose calibrate")
-    parser.add_argument("--window", type=positive(int), help="one camera without a rig: fuse the last N frames")
+    add_config_flags(parser, REPLAY_OPTIONS, OPTION_FLAGS, exclude=("clustering",))
     parser.add_argument("--check", action="store_true", help="compare the new caps with the recorded ones unit by "
                         "unit; exit 1 when a cap is lost, gained or changed beyond the tolerances")
     parser.add_argument("--expected", help="--check against these detections (JSON: one document or a list, one "
@@ -49,7 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_flags(parser, TOLERANCES, TOLERANCE_FLAGS, prefix=TOLERANCE)
     parser.add_argument("--verbose", action="store_true", help="--check: list every cap, not only changes")
     parser.add_argument("--model", help="weights file (default: the shipped model)")
-    parser.add_argument("--clustering", choices=CLUSTERING, default="meanshift")
+    add_config_flags(parser, REPLAY_OPTIONS, only=("clustering",))
     parser.add_argument("--threads", type=parse_threads, help="torch threads (default: all cores)")
     parser.add_argument("--quiet", action="store_true", help="no line per fused unit")
     add_ray_flag(parser, "several sessions: one Ray task each")
@@ -79,8 +76,7 @@ def run(args: argparse.Namespace) -> int:
         expected = read_expected(Path(args.expected)) if args.expected else None
     except ReplayError as error:
         raise CliError(str(error)) from None
-    options = ReplayOptions(args.from_stage, args.speed == "realtime", Path(args.rig) if args.rig else None,
-                            args.window, args.clustering)
+    options = config_from_args(ReplayOptions, args)
     tolerances = config_from_args(Tolerances, args, prefix=TOLERANCE) if args.check else None
     with graceful_stop() as stop:
         try:
@@ -127,8 +123,7 @@ def _replay_many(args: argparse.Namespace) -> int:
         raise CliError(str(error)) from None
     out_dir = writable_dir(args.out)
     load_model(args.model)  # a bad weights file is one error here, not one per session
-    options = ReplayOptions(args.from_stage, args.speed == "realtime", Path(args.rig) if args.rig else None,
-                            args.window, args.clustering)
+    options = config_from_args(ReplayOptions, args)
     tolerances = config_from_args(Tolerances, args, prefix=TOLERANCE) if args.check else None
     job = FarmJob(str(model_path(args.model)), str(out_dir), options, tolerances, threads=args.threads or 1)
     ray = ray_options(args)
