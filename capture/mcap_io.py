@@ -18,6 +18,7 @@ colour image belongs to the frame, so the reader knows when a frame is complete.
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
 import signal
@@ -129,13 +130,36 @@ def graceful_stop(signals: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) ->
             signal.signal(sig, signal.SIG_DFL if handler is None else handler)
 
 
+class RecordingError(OSError):
+    """A recording that cannot go on: its disk is (nearly) full, or a write to it failed."""
+
+
+class _WriteFailures(logging.Handler):
+    """foxglove-sdk reports a failed MCAP write only as a log record (on the ``foxglove`` logger), never
+    as an exception: this keeps the first such report for the recorder, and keeps the hundreds that
+    follow off the terminal."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.first: str | None = None
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if self.first is None and "McapError" in record.getMessage():
+            self.first = record.getMessage()
+
+
 class McapRecorder:
     """Writes DepthFrames (and JSON, point clouds) to an MCAP file with foxglove-sdk.
 
     The file is written as ``<path>.partial`` and renamed to ``path`` by ``close()``, which always
     finalises (summary and footer) first, also when leaving ``with`` on KeyboardInterrupt or any other
     exception, and holds off SIGINT/SIGTERM while doing so. A process killed outright (SIGKILL, power
-    loss) leaves only the ``.partial`` file, which McapSource replays up to its last whole chunk.
+    loss) leaves only the ``.partial`` file, which ``recover_recording`` turns into a valid MCAP.
+
+    A write raises RecordingError when the disk holding the file has less room than one more chunk
+    and the summary need (``room_needed``), so the recording stops while it can still be finalised;
+    and when a write failed all the same (another process filled the disk), leaving the ``.partial``
+    file for ``recover_recording``.
     """
 
     def __init__(self, path: str | os.PathLike, compression: str | None = "zstd", *,
@@ -148,9 +172,10 @@ class McapRecorder:
         self.partial_path = self.path.with_name(self.path.name + ".partial")
         if self.path.exists() and not overwrite:
             raise FileExistsError(f"{self.path} exists (pass overwrite=True to replace it)")
-        if self.partial_path.exists():
-            raise FileExistsError(f"{self.partial_path} exists: an earlier recording was interrupted; "
-                                  f"McapSource can replay it, move or delete it first")
+        if self.partial_path.exists() and not overwrite:
+            raise FileExistsError(f"{self.partial_path} exists: an earlier recording was interrupted; recover it "
+                                  f"(mushroom-pose recover), move it, or overwrite it")
+        self.partial_path.unlink(missing_ok=True)
         self.frames = 0
         self._messages = 0  # whole frames, documents and clouds: with none yet, an error discards the file
         self._context = foxglove.Context()
@@ -162,6 +187,26 @@ class McapRecorder:
         self._channels: dict[str, Any] = {}
         self._last_timestamp: dict[str, int] = {}
         self._closed = False
+        self._chunk_size = chunk_size
+        self._failures = _WriteFailures()
+        self._foxglove_log = logging.getLogger("foxglove")
+        self._foxglove_log.addHandler(self._failures)
+        self._propagated, self._foxglove_log.propagate = self._foxglove_log.propagate, False
+
+    def room_needed(self, message_bytes: int) -> int:
+        """Free bytes the disk must keep for a message of ``message_bytes``: the chunk being filled may
+        be flushed with it, and closing writes the summary (indexes and statistics)."""
+        return 2 * self._chunk_size + 2 * message_bytes + (1 << 20)
+
+    def _written(self, message_bytes: int) -> None:
+        """After a write: a RecordingError if it failed, or if the disk has no room for the next one."""
+        if self._failures.first is not None:
+            raise RecordingError(f"writing {self.partial_path} failed ({self._failures.first})")
+        stat = os.statvfs(self.partial_path.parent)
+        free = stat.f_bavail * stat.f_frsize
+        if free < self.room_needed(message_bytes):
+            raise RecordingError(f"the disk holding {self.partial_path.parent} is full ({free / 1e6:.1f} MB free, "
+                                 f"a recording keeps {self.room_needed(message_bytes) / 1e6:.1f} MB in hand)")
 
     def __enter__(self) -> "McapRecorder":
         return self
@@ -217,12 +262,15 @@ class McapRecorder:
         self._last_timestamp[sensor] = t
         self.frames += 1
         self._messages += 1
+        self._written(frame.depth.nbytes + (0 if frame.color is None else frame.color.nbytes))
 
     def write_json(self, topic: str, obj: Any, log_time_ns: int, *, schema: dict | None = None) -> None:
         """Log ``obj`` (numpy values allowed) on a JSON channel; ``schema`` is a JSON schema of an object."""
         channel = self._channel(topic, foxglove.Channel, schema=schema or {"type": "object"})
-        channel.log(json.dumps(obj, default=_jsonable).encode(), log_time=int(log_time_ns))
+        data = json.dumps(obj, default=_jsonable).encode()
+        channel.log(data, log_time=int(log_time_ns))
         self._messages += 1
+        self._written(len(data))
 
     def write_point_cloud(self, topic: str, points: np.ndarray, log_time_ns: int, frame_id: str = "world",
                           colors: np.ndarray | None = None) -> None:
@@ -249,11 +297,13 @@ class McapRecorder:
             pose=Pose(position=Vector3(), orientation=Quaternion(w=1.0)), point_stride=stride, fields=fields,
             data=data), log_time=int(log_time_ns))
         self._messages += 1
+        self._written(len(data))
 
     def write_transform(self, parent: str, child: str, T_parent_child: np.ndarray, log_time_ns: int) -> None:
         """Log ``T_parent_child`` on /tf (for viewers; the pose is also kept exact where replay needs it)."""
         self._log_transform(parent, child, T_parent_child, log_time_ns)
         self._messages += 1
+        self._written(0)
 
     def _log_transform(self, parent: str, child: str, T_parent_child: np.ndarray, log_time_ns: int) -> None:
         from scipy.spatial.transform import Rotation
@@ -269,23 +319,36 @@ class McapRecorder:
         """Log a foxglove.SceneUpdate (shapes a viewer draws in 3D)."""
         self._channel(topic, SceneUpdateChannel).log(update, log_time=int(log_time_ns))
         self._messages += 1
+        self._written(0)
 
     def close(self, discard: bool = False) -> None:
-        """Finalise the MCAP and move it to its final name; safe to call twice. If finalising fails
-        (disk full), the ``.partial`` file stays for McapSource to recover and the error propagates.
-        ``discard`` deletes it instead: ``with`` does so when an error ends a recording before its first
-        whole message, so that an earlier file of that name is kept, not replaced by an empty one."""
+        """Finalise the MCAP and move it to its final name; safe to call twice. If a write or finalising
+        failed (disk full), the ``.partial`` file stays for ``recover_recording`` and a RecordingError
+        says so. ``discard`` deletes it instead: ``with`` does so when an error ends a recording before
+        its first whole message, so that an earlier file of that name is kept, not replaced by an empty
+        one."""
         if self._closed:
             return
         self._closed = True
-        with _signals_deferred():
-            for channel in self._channels.values():
-                channel.close()
-            self._writer.close()
-            if discard:
-                self.partial_path.unlink(missing_ok=True)
-            else:
-                os.replace(self.partial_path, self.path)
+        try:
+            with _signals_deferred():
+                for channel in self._channels.values():
+                    channel.close()
+                try:
+                    self._writer.close()
+                except RuntimeError as error:  # foxglove-sdk: a write failed before, or this one did
+                    if discard:
+                        self.partial_path.unlink(missing_ok=True)
+                        return
+                    raise RecordingError(f"{self.partial_path} could not be finalised ({self._failures.first or error})"
+                                         f": free some space, then mushroom-pose recover {self.partial_path}") from None
+                if discard:
+                    self.partial_path.unlink(missing_ok=True)
+                else:
+                    os.replace(self.partial_path, self.path)
+        finally:
+            self._foxglove_log.removeHandler(self._failures)
+            self._foxglove_log.propagate = self._propagated
 
 
 @dataclass(frozen=True)
@@ -308,13 +371,30 @@ def record(source: Source, path: str | os.PathLike, duration_s: float | None = N
     exception propagates. Stopping before the first frame leaves no file (an empty recording would only
     fail later, in ``calibrate`` or ``replay``) and raises ValueError, or KeyboardInterrupt for a
     signal. ``on_frame(frames_written, frame)`` runs after each frame is written. The caller owns the
-    source (opens/closes it)."""
+    source (opens/closes it). A full disk ends it with a RecordingError that says what was kept."""
+    start = time.monotonic()
+    with graceful_stop() as stop:
+        recorder = McapRecorder(path, compression, overwrite=overwrite)
+        try:
+            stopped_by = _record_into(recorder, stop, source, start, duration_s, progress, on_frame)
+        except RecordingError as error:
+            if recorder.path.exists():
+                frames = "its first frame is" if recorder.frames == 1 else f"its first {recorder.frames} frames are"
+                raise RecordingError(f"{error}; {frames} in {recorder.path}") from None
+            raise RecordingError(str(error) if recorder.partial_path.exists() else f"{error}; no frame was kept") \
+                from None
+    return RecordingSummary(recorder.frames, recorder.path.stat().st_size, time.monotonic() - start,
+                            recorder.path, stopped_by)
+
+
+def _record_into(recorder: McapRecorder, stop: StopRequest, source: Source, start: float, duration_s: float | None,
+                 progress: bool, on_frame: Callable[[int, DepthFrame], None] | None) -> str:
+    """``record``'s loop; returns why it stopped."""
     from tqdm import tqdm
 
-    start = time.monotonic()
     stopped_by = "end"
-    with graceful_stop() as stop, McapRecorder(path, compression, overwrite=overwrite) as recorder, \
-            tqdm(desc=f"recording {Path(path).name}", unit="frame", disable=not progress, file=sys.stderr) as bar:
+    with recorder, tqdm(desc=f"recording {recorder.path.name}", unit="frame", disable=not progress,
+                        file=sys.stderr) as bar:
         while True:
             if stop.requested:
                 stopped_by = stop.signal or "signal"
@@ -335,8 +415,7 @@ def record(source: Source, path: str | os.PathLike, duration_s: float | None = N
             if stopped_by == "end":
                 raise ValueError("the source ended before its first frame")
             raise KeyboardInterrupt
-    return RecordingSummary(recorder.frames, recorder.path.stat().st_size, time.monotonic() - start,
-                            recorder.path, stopped_by)
+    return stopped_by
 
 
 class _ExactReads:

@@ -10,6 +10,7 @@ resumed run continues exactly where it stopped.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import multiprocessing as mp
 import queue as queues
@@ -24,7 +25,7 @@ import torch.nn.functional as F
 from torch.optim.swa_utils import AveragedModel
 from tqdm import tqdm
 
-from common.files import atomic_path, write_atomically
+from common.files import write_atomically
 from perception.cap import cap_rotation
 from perception.encoding import encode
 from perception.model import (INFERENCE_ZOOM, LENGTH_UNIT, NETWORK_PRESETS, MushroomNet,
@@ -348,8 +349,14 @@ def _weighted_mse(prediction: torch.Tensor, target: torch.Tensor, weight: torch.
 
 
 def _atomic_save(payload: dict, path: Path) -> None:
-    with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
+    """``payload`` in ``path`` whole, or ``path`` as it was and a TrainingError that says why. Serialised
+    in memory first: torch reports a failed write (a full disk) only as an opaque RuntimeError."""
+    buffer = io.BytesIO()
+    torch.save(payload, buffer)
+    try:
+        write_atomically(path, buffer.getvalue())
+    except OSError as error:
+        raise TrainingError(f"cannot write {path}: {error.strerror or error}") from None
 
 
 def validate(model: MushroomNet, scenes) -> dict[str, float]:
@@ -365,6 +372,9 @@ LOSS_TERMS = ("total", "existence", "residual", "orientation")
 VALIDATION_METRICS = ("ap25", "ap50", "angle_deg", "scale_err")
 HISTORY_COLUMNS = ("iteration", "lr", *LOSS_TERMS, "seconds", *(f"val_{name}" for name in VALIDATION_METRICS))
 """history.csv: one row per iteration; the validation columns are empty between validations."""
+ABANDONED_STREAMS: list = []
+"""Rerun streams whose file writer failed: kept referenced, since Rerun waits for ever on the dead
+writer when such a stream is dropped; the command line ends the process without dropping them."""
 
 
 def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str | None = None,
@@ -482,7 +492,10 @@ class TrainingRun:
             history.close()
             scenes.close()
             if rec is not None:
-                rec.flush()
+                try:
+                    rec.flush(timeout_sec=10)
+                except RuntimeError:  # its file writer died (a full disk): dropping the stream would wait on it
+                    ABANDONED_STREAMS.append(rec)
         return end
 
     def _rerun_stream(self) -> rr.RecordingStream:
@@ -535,13 +548,18 @@ class TrainingRun:
         """Everything a resumed run needs to go on exactly as this one would, written atomically."""
         if not _all_finite(self.model):
             raise TrainingError(f"the weights are no longer finite at iteration {iteration}; {self._diverged()}")
-        _atomic_save({"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
-                      "scheduler": self.scheduler.state_dict(), "torch_rng": torch.get_rng_state(),
-                      "iteration": iteration, "elapsed_s": self._elapsed(), "train_config": self.config.to_dict(),
-                      "network": self.network_config.to_dict(), "init": self.init,
-                      "inference_zoom": self.model.inference_zoom,
-                      "average": None if self.averaged is None else self.averaged.state_dict()},
-                     self.checkpoint_path)
+        payload = {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
+                   "scheduler": self.scheduler.state_dict(), "torch_rng": torch.get_rng_state(),
+                   "iteration": iteration, "elapsed_s": self._elapsed(), "train_config": self.config.to_dict(),
+                   "network": self.network_config.to_dict(), "init": self.init,
+                   "inference_zoom": self.model.inference_zoom,
+                   "average": None if self.averaged is None else self.averaged.state_dict()}
+        try:
+            _atomic_save(payload, self.checkpoint_path)
+        except TrainingError as error:
+            kept = f"the checkpoint of iteration {self.saved_at} is kept" if self.saved_at is not None \
+                else "no checkpoint was kept"
+            raise TrainingError(f"{error}; {kept}") from None
         self.saved_at = iteration
 
     def export(self) -> Path:

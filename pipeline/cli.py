@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import os
 import signal
 import sys
@@ -10,7 +11,7 @@ import threading
 
 from pipeline.commands import (average, calibrate, cameras, demo, detect, evaluate, live, record, recover, replay,
                                synth, train)
-from pipeline.commands.common import CliError
+from pipeline.commands.common import CliError, CommandFailed
 from pipeline.process import reuse_freed_memory
 
 COMMANDS = (synth, train, average, detect, evaluate, demo, cameras, record, recover, live, replay, calibrate)
@@ -37,8 +38,13 @@ def build_parser(only: list[str] | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+WRITE_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO, errno.EFBIG}
+"""Errors of a write that the user's input did not cause: the disk, not the command, failed."""
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Run the command ``argv`` names; its exit status (2: bad input, 130: interrupted)."""
+    """Run the command ``argv`` names; its exit status: 0 done, 2 bad input, 1 failed (a full disk, a
+    failed write), 130 interrupted by Ctrl-C (a command stopped by SIGTERM returns 143 itself)."""
     interrupted: list[int] = []
 
     def on_interrupt(signum: int, frame) -> None:
@@ -64,6 +70,16 @@ def main(argv: list[str] | None = None) -> int:
         if not interrupted:
             print(f"{command}: error: {error}", file=sys.stderr)
             return 2
+    except CommandFailed as error:
+        if not interrupted:
+            print(f"{command}: error: {error}", file=sys.stderr)
+            return 1
+    except OSError as error:
+        if interrupted or error.errno not in WRITE_ERRORS:
+            raise
+        where = f" {error.filename}" if error.filename else ""
+        print(f"{command}: error: cannot write{where}: {error.strerror}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         pass
     except Exception:
@@ -77,10 +93,11 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def console_main() -> None:
-    """The ``mushroom-pose`` command. After an interrupt it exits without running exit handlers:
-    Open3D, interrupted while it loaded, would print a leak report and turn status 130 into 1."""
+    """The ``mushroom-pose`` command. After an interrupt or a failure it exits without running exit
+    handlers: Open3D, interrupted while it loaded, would print a leak report and turn status 130 into
+    1, and a Rerun stream whose file writer failed (a full disk) would wait on it for ever."""
     code = main()
-    if code == 130:
+    if code != 0:
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(code)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import sys
 from dataclasses import dataclass, replace
@@ -65,23 +66,34 @@ def label_colors(scene: SyntheticScene) -> np.ndarray:
     return colors
 
 
+PLY_VERTEX_BYTES = 3 * 8 + 3
+"""Bytes per vertex of the binary .ply written here: x, y, z as doubles and r, g, b as bytes."""
+
+
 def write_ply(scene: SyntheticScene, path: Path) -> None:
     import open3d as o3d
 
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scene.points.astype(np.float64)))
     cloud.colors = o3d.utility.Vector3dVector(label_colors(scene))
     with atomic_path(path, keep_suffix=True) as tmp:
-        if not o3d.io.write_point_cloud(str(tmp), cloud, compressed=False):
-            raise OSError(f"could not write {path}")
+        written = o3d.io.write_point_cloud(str(tmp), cloud, compressed=False)
+        # Open3D reports a write cut short (a full disk) only on the terminal: the vertices must be there
+        if not written or tmp.stat().st_size < PLY_VERTEX_BYTES * len(scene.points):
+            raise OSError(errno.EIO, "the .ply came out short (is the disk full?)", str(path))
 
 
 def write_scene(scene: SyntheticScene, out_dir: Path, index: int, ply: bool = True) -> Path:
-    """Write ``scene_NNNN.npz`` (and ``.ply``) atomically: a crash never leaves half a file."""
+    """Write ``scene_NNNN.npz`` (and ``.ply``) atomically: a crash never leaves half a file, and a
+    failed .ply takes its .npz with it."""
     path = scene_path(out_dir, index)
     with atomic_path(path, keep_suffix=True) as tmp:
         scene.save(tmp)
     if ply:
-        write_ply(scene, path.with_suffix(".ply"))
+        try:
+            write_ply(scene, path.with_suffix(".ply"))
+        except BaseException:
+            path.unlink(missing_ok=True)
+            raise
     return path
 
 

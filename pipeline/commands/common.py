@@ -13,6 +13,11 @@ class CliError(Exception):
     """A problem with the user's input: reported in one line, exit status 2."""
 
 
+class CommandFailed(Exception):
+    """A command that could not finish although its input was good (a full disk, a failed write):
+    reported in one line that says what was kept, exit status 1."""
+
+
 # ---- output paths
 
 def writable_dir(path: str) -> Path:

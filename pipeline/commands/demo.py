@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from pipeline.commands.common import (CliError, load_model, parse_seed, parse_threads, positive, torch_threads,
-                                      writable_dir)
+from pipeline.commands.common import (CliError, CommandFailed, load_model, parse_seed, parse_threads, positive,
+                                      torch_threads, writable_dir)
 
 OUTPUTS = ("session.mcap", "detections.json", "demo.rrd")
 """What a demo writes into --out; none is replaced without --overwrite (as with record)."""
@@ -41,7 +41,9 @@ def run(args: argparse.Namespace) -> int:
           f"model: {args.model or 'shipped'}")
     try:
         result = run_demo(out_dir, model, args.seed, args.views, not args.no_rrd, args.spawn, progress=not args.quiet)
-    except (OSError, ValueError) as error:
+    except OSError as error:  # a full disk (RecordingError) or another failed write
+        raise CommandFailed(f"{error}; {out_dir} is as it was") from None
+    except ValueError as error:
         raise CliError(str(error)) from None
     stages = ", ".join(f"{name} {value:.1f} s" for name, value in result.seconds.items())
     axis = f"axis error {result.angle_deg:.1f} deg" if result.caps_found else "no caps matched"

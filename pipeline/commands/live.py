@@ -7,8 +7,8 @@ import sys
 import time
 from pathlib import Path
 
-from pipeline.commands.common import (CAMERAS, STOP_EXIT, CliError, load_model, parse_seed, parse_threads, positive,
-                                      torch_threads, writable_file, written_files)
+from pipeline.commands.common import (CAMERAS, STOP_EXIT, CliError, CommandFailed, load_model, parse_seed,
+                                      parse_threads, positive, torch_threads, writable_file, written_files)
 
 NAME = "live"
 HELP = "capture, fuse and detect as frames arrive, shown in Rerun and recorded"
@@ -58,7 +58,7 @@ def _checked_outputs(args: argparse.Namespace) -> tuple[Path | None, Path | None
 
 
 def run(args: argparse.Namespace) -> int:
-    from capture.mcap_io import graceful_stop
+    from capture.mcap_io import RecordingError, graceful_stop
     from capture.source import SourceError
     from fusion.turntable import Rig
     from pipeline.flags import config_from_args
@@ -91,6 +91,9 @@ def run(args: argparse.Namespace) -> int:
                                 on_start=lambda text: print(f"fused unit: {text}", flush=True),
                                 stop_requested=lambda: stop.signal if stop.requested else None,
                                 overwrite=args.overwrite)
+        except RecordingError as error:  # a full disk
+            kept = written_files((record, rrd, detections))
+            raise CommandFailed(f"{error}" + (f"; kept {kept}" if kept else "")) from None
         except (SourceError, ValueError, OSError) as error:
             kept = written_files((record, rrd, detections))
             raise CliError(f"{args.camera} camera: {error}" + (f"; kept {kept}" if kept else "")) from None

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from pipeline.commands.common import CAMERAS, STOP_EXIT, CliError, parse_seed, positive, writable_file
+from pipeline.commands.common import CAMERAS, STOP_EXIT, CliError, CommandFailed, parse_seed, positive, writable_file
 
 NAME = "record"
 HELP = "record a depth camera session to MCAP"
@@ -24,7 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from capture.mcap_io import record
+    from capture.mcap_io import RecordingError, record
     from capture.source import SourceError
     from pipeline.sources import make_source
 
@@ -44,6 +44,8 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"{camera}{error}{kept}") from None
     except (ImportError, FileExistsError) as error:
         raise CliError(str(error)) from None
+    except RecordingError as error:
+        raise CommandFailed(str(error)) from None
     line = f"recorded {summary.frames} frames in {summary.seconds:.1f} s ({summary.stopped_by}) -> {out} " \
            f"({summary.bytes / 1e6:.1f} MB)"
     if summary.stopped_by in STOP_EXIT:  # stopped, not done: a supervisor must be able to tell

@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipeline.commands.common import (STOP_EXIT, CliError, add_ray_flag, load_model, model_path,
+from pipeline.commands.common import (STOP_EXIT, CliError, CommandFailed, add_ray_flag, load_model, model_path,
                                       parse_threads, positive, ray_options, torch_threads, writable_dir,
                                       writable_file, written_files)
 
@@ -53,7 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from capture.mcap_io import graceful_stop
+    from capture.mcap_io import RecordingError, graceful_stop
     from pipeline.check import Tolerances
     from pipeline.flags import config_from_args
     from pipeline.replay import ReplayError, ReplayOptions, read_expected, run_replay
@@ -85,6 +85,9 @@ def run(args: argparse.Namespace) -> int:
                                 on_start=lambda text: print(f"fused unit: {text}", flush=True), expected=expected)
         except ReplayError as error:
             raise CliError(str(error)) from None
+        except RecordingError as error:  # a full disk
+            kept = written_files((out_dir / "replay.mcap", rrd, out_dir / "detections.json"))
+            raise CommandFailed(f"{error}" + (f"; kept {kept}" if kept else "")) from None
     return _report(result, session, out_dir, rrd, args.verbose)
 
 

@@ -6,8 +6,9 @@ import argparse
 import sys
 import time
 
-from pipeline.commands.common import (SPACING_HELP, VISIBILITY, CliError, add_ray_flag, ray_options, parse_mushroom_count, parse_seed,
-                                      parse_spacing, positive, writable_dir, writable_file)
+from pipeline.commands.common import (SPACING_HELP, VISIBILITY, CliError, CommandFailed, add_ray_flag,
+                                      parse_mushroom_count, parse_seed, parse_spacing, positive, ray_options,
+                                      writable_dir, writable_file)
 
 NAME = "synth"
 HELP = "generate synthetic mushroom beds with ground truth"
@@ -56,7 +57,12 @@ def run(args: argparse.Namespace) -> int:
     with rerun_stream(rrd) as rec:
         for index, scene in enumerate(generate_many(seeds, config, progress=not args.quiet,
                                                                    **ray_options(args))):
-            write_scene(scene, out, index, ply=not args.no_ply)
+            try:
+                write_scene(scene, out, index, ply=not args.no_ply)
+            except OSError as error:
+                kept = {0: "no scene was written", 1: "scene 0 is whole"}.get(index, f"scenes 0-{index - 1} are whole")
+                raise CommandFailed(f"cannot write scene {index} into {out}: {error.strerror or error}; {kept}") \
+                    from None
             mushrooms.append(len(scene.centers))
             points.append(len(scene.points))
             if rec is not None:

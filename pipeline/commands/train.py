@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from pipeline.commands.common import (CliError, add_ray_flag, at_most, non_negative, parse_learning_rate,
+from pipeline.commands.common import (CliError, CommandFailed, add_ray_flag, at_most, non_negative, parse_learning_rate,
                                       parse_run_fraction, parse_seed, parse_spacing, parse_threads, parse_zoom, positive,
                                       ray_options, torch_threads, writable_dir)
 
@@ -115,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
     except (ValueError, TrainingError) as error:
         if new_folder and not any(run_dir.iterdir()):
             run_dir.rmdir()
-        raise CliError(str(error)) from None
+        raise (CommandFailed if isinstance(error, TrainingError) else CliError)(str(error)) from None
     if weights is None:
         print(f"stopped after {args.max_minutes} minutes with a checkpoint in {run_dir}: continue with the same "
               "flags and --resume")
