@@ -9,9 +9,14 @@ from pathlib import Path
 import numpy as np
 
 CLOUD_SUFFIXES = (".ply", ".pcd", ".npz", ".mcap")
-MILLIMETRE_EXTENT = 20.0
-"""A bed is under a few metres across: a cloud spanning more than this many units is in millimetres.
-The span is taken between the 1st and 99th percentiles, so that a few stray points do not decide it."""
+UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+"""Metres per unit of the units a cloud may come in."""
+BED_SPACING = (0.0001, 0.012, 0.002)
+"""A bed cloud's point spacing in metres (median nearest-neighbour distance): from a dense fused
+cloud's 0.1 mm to a cloud thinned to 12 mm, typically 2 mm."""
+BED_EXTENT = (0.05, 5.0, 0.6)
+"""A bed cloud's width in metres (between the 5th and 95th percentiles, so that a wall or a stray
+point does not count): from a 5 cm patch to a 5 m bed, typically 0.6 m."""
 _PLY_SIZES = {"char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2,
               "int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
 
@@ -22,14 +27,25 @@ class LoadedCloud:
     """(N, 3) float64 metres."""
     in_bed_frame: bool
     """True for our synthetic scenes, which are stored in the bed frame."""
-    unit_scale: float = 1.0
-    """Metres per input unit (0.001 when the file was in millimetres)."""
+    units: str = "m"
+    """The units the file was in (``UNITS``)."""
+    spacing: float = 0.0
+    """Median nearest-neighbour distance of the points, in the file's units."""
     extent: float = 0.0
-    """The cloud's largest span in input units, between the 1st and 99th percentiles."""
+    """The cloud's width in the file's units, between the 5th and 95th percentiles."""
+    unit_doubt: str | None = None
+    """Why no unit makes the cloud a bed, when the units were to be inferred and none did (it is then
+    read in metres)."""
+
+    @property
+    def unit_scale(self) -> float:
+        """Metres per input unit."""
+        return UNITS[self.units]
 
 
-def load_cloud(path: Path) -> LoadedCloud:
-    """A cloud in metres; raises ValueError with a one-line reason when the file cannot be used."""
+def load_cloud(path: Path, units: str = "auto") -> LoadedCloud:
+    """A cloud in metres, from a file in ``units`` ("auto": those its spacing and width say, see
+    ``infer_units``); raises ValueError with a one-line reason when the file cannot be used."""
     path = Path(path)
     if not path.exists():
         raise ValueError(f"{path} does not exist")
@@ -72,13 +88,45 @@ def load_cloud(path: Path) -> LoadedCloud:
     _refuse_nonfinite(path, points)
     if len(points) == 0:
         raise ValueError(f"{path}: the cloud is empty")
-    scale = 1.0
-    low, high = np.percentile(points, [1, 99], axis=0)
-    extent = float(np.max(high - low))
-    if extent > MILLIMETRE_EXTENT:
-        scale = 0.001
-        points = points * scale
-    return LoadedCloud(points, in_bed, scale, extent)
+    spacing, extent = nearest_spacing(points), float(np.max(np.ptp(np.percentile(points, [5, 95], axis=0), axis=0)))
+    doubt = None
+    if units == "auto":
+        units = "m" if in_bed else infer_units(spacing, extent)
+        if units is None:
+            units, doubt = "m", (f"its points lie {spacing:.3g} units apart over {extent:.3g} units, which is no "
+                                 "bed in metres, centimetres or millimetres (--units says which it is)")
+    elif units not in UNITS:
+        raise ValueError(f"unknown units {units!r}; choose one of auto, {', '.join(UNITS)}")
+    return LoadedCloud(points * UNITS[units], in_bed, units, spacing, extent, doubt)
+
+
+def nearest_spacing(points: np.ndarray, queries: int = 4000, sample: int = 200_000) -> float:
+    """Median distance from a point to its nearest neighbour. A cloud of more than ``sample`` points is
+    measured on a random sample of them and scaled back (on a surface, spacing goes as one over the
+    square root of density)."""
+    from scipy.spatial import cKDTree
+
+    if len(points) < 2:
+        return float("nan")
+    rng = np.random.default_rng(0)
+    kept = points if len(points) <= sample else points[rng.choice(len(points), sample, replace=False)]
+    asked = kept[rng.choice(len(kept), min(queries, len(kept)), replace=False)]
+    distances = cKDTree(kept).query(asked, k=2)[0][:, 1]
+    return float(np.median(distances)) * np.sqrt(len(kept) / len(points))
+
+
+def infer_units(spacing: float, extent: float) -> str | None:
+    """The units in which a cloud of this point spacing and width is a bed (``BED_SPACING``,
+    ``BED_EXTENT``); of several, the one nearest a typical bed; None when none fits."""
+    def log_gap(value: float, typical: float) -> float:
+        return float(np.log(value / typical)) ** 2
+
+    fits = [unit for unit, scale in UNITS.items()
+            if BED_SPACING[0] <= spacing * scale <= BED_SPACING[1] and BED_EXTENT[0] <= extent * scale <= BED_EXTENT[1]]
+    if not fits:
+        return None
+    return min(fits, key=lambda unit: log_gap(spacing * UNITS[unit], BED_SPACING[2])
+               + log_gap(extent * UNITS[unit], BED_EXTENT[2]))
 
 
 def _check_ply(path: Path) -> np.ndarray | None:
@@ -179,3 +227,48 @@ def _refuse_nonfinite(path: Path, rows: np.ndarray) -> None:
     if bad:
         raise ValueError(f"{path}: {bad} of {len(rows)} points are NaN or infinite; "
                          "remove them (invalid depth) and try again")
+
+
+NEAR_PLANE = 0.10
+"""Metres from the bed plane within which a bed's soil and caps lie (caps stand a few cm tall)."""
+MIN_NEAR_PLANE = 0.5
+"""The least fraction of a bed cloud's points within ``NEAR_PLANE`` of its dominant plane."""
+MAX_CAPS_PER_M2 = 1000.0
+"""More caps per square metre than the densest bed holds (touching 30 mm caps give about 1100 on a
+hexagonal packing, and beds are never packed that tight)."""
+BED_FRAME_TILT_DEG = 20.0
+"""How far the dominant plane of a cloud said to be in the bed frame may tilt from z = 0."""
+BED_FRAME_OFFSET = 0.10
+"""How far (metres) that plane may lie from the frame's origin."""
+
+
+def not_a_bed(bed_points: np.ndarray) -> str | None:
+    """Why a cloud in its bed frame is no bed seen from above (most of its points far from its
+    dominant plane), or None when it may be one."""
+    near = float(np.mean(np.abs(bed_points[:, 2]) <= NEAR_PLANE))
+    if near < MIN_NEAR_PLANE:
+        return (f"only {near:.0%} of its points lie within {100 * NEAR_PLANE:.0f} cm of its dominant plane, where a "
+                "bed has most of them")
+    return None
+
+
+def too_many_caps(bed_points: np.ndarray, caps: int) -> str | None:
+    """Why ``caps`` caps on this cloud (in its bed frame) are more than a bed holds, or None."""
+    near = bed_points[np.abs(bed_points[:, 2]) <= NEAR_PLANE]
+    if len(near) < 3 or caps == 0:
+        return None
+    area = float(np.prod(np.ptp(np.percentile(near[:, :2], [1, 99], axis=0), axis=0)))
+    if caps > MAX_CAPS_PER_M2 * max(area, 1e-6):
+        return f"{caps} caps on {area:.2g} m2 are more than a bed holds (at most {MAX_CAPS_PER_M2:.0f} per m2)"
+    return None
+
+
+def bed_frame_mismatch(T_input_bed: np.ndarray) -> str | None:
+    """Why a cloud whose own bed plane is ``T_input_bed`` is not in the bed frame, or None."""
+    tilt = float(np.degrees(np.arccos(np.clip(abs(T_input_bed[2, 2]), -1.0, 1.0))))
+    height = abs(float(T_input_bed[2, 3]))
+    if tilt > BED_FRAME_TILT_DEG:
+        return f"its bed plane is tilted {tilt:.0f} deg from the frame's xy plane"
+    if height > BED_FRAME_OFFSET:
+        return f"its bed plane lies {100 * height:.0f} cm from the frame's origin"
+    return None

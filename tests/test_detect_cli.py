@@ -77,7 +77,7 @@ def test_detect_writes_json_in_the_input_frame(tmp_path, scene_ply):
 @pytest.mark.parametrize("case, fragment", [
     ("nan", "NaN or infinite"), ("empty", "empty"), ("missing", "does not exist"), ("format", "unsupported"),
     ("corrupt-model", "not a mushroom-pose weights file"), ("missing-model", "does not exist"),
-    ("folder", "is a folder"), ("line", "on a line"), ("far", "beyond the voxel grid"),
+    ("folder", "is a folder"), ("line", "on a line"), ("far", "does not look like a bed"),
     ("diverged-model", "not finite"), ("ascii-short", "cut short"),
 ])
 def test_detect_bad_input(tmp_path, weights, case, fragment):
@@ -231,6 +231,16 @@ def test_a_failed_write_leaves_no_temporary_file(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["taken"]
 
 
+def test_a_bed_beyond_the_voxel_grid_is_refused_even_when_forced(tmp_path, weights):
+    points = np.random.default_rng(0).uniform(-0.2, 0.2, (500, 3)) * [1, 1, 0.05] + [0.0, 0.0, 500.0]
+    np.savez(tmp_path / "far.npz", points=points)
+    result = run("detect", tmp_path / "far.npz", "--model", weights, "--out", tmp_path / "d.json", "--force")
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    warning, error = result.stderr.strip().splitlines()
+    assert warning.startswith("warning:") and "within 10 cm of its dominant plane" in warning
+    assert "beyond the voxel grid" in error and not (tmp_path / "d.json").exists()
+
+
 def test_a_stray_point_does_not_make_a_metre_cloud_millimetres(tmp_path, scene_ply):
     _, scene = scene_ply
     points = np.vstack([scene.points, [[25.0, 0.0, 0.0]]])
@@ -303,3 +313,52 @@ def test_detect_warns_outside_the_operating_range(tmp_path, weights):
         sparse = [line for line in result.stderr.splitlines() if "lie as far apart" in line]
         assert len(sparse) == (spacing == 0.005)
         assert "warning: no caps" in result.stderr
+
+
+@pytest.mark.parametrize("unit, per_metre", [("m", 1), ("cm", 100), ("mm", 1000)])
+def test_a_cloud_is_read_in_the_unit_in_which_it_is_a_bed(tmp_path, scene_ply, unit, per_metre):
+    _, scene = scene_ply
+    cloud = load_cloud(write_ply(tmp_path / "bed.ply", scene.points * per_metre))
+    assert cloud.units == unit and cloud.unit_doubt is None
+    np.testing.assert_allclose(cloud.points, scene.points, atol=1e-6)
+    assert load_cloud(tmp_path / "bed.ply", "m").units == "m"  # --units decides
+
+
+def test_a_wall_far_behind_a_metre_bed_does_not_change_its_unit(tmp_path, scene_ply):
+    _, scene = scene_ply
+    rng = np.random.default_rng(1)
+    wall = np.column_stack([rng.uniform(-1, 1, len(scene.points) // 33), np.full(len(scene.points) // 33, 25.0),
+                            rng.uniform(0, 2, len(scene.points) // 33)])
+    assert load_cloud(write_ply(tmp_path / "walled.ply", np.vstack([scene.points, wall]))).units == "m"
+
+
+def test_detect_on_a_centimetre_bed_gives_the_caps_of_the_metre_bed(tmp_path, scene_ply):
+    path, scene = scene_ply
+    result = run("detect", write_ply(tmp_path / "cm.ply", scene.points * 100), "--out", tmp_path / "cm.json")
+    assert result.returncode == 0 and "read in centimetres" in result.stderr
+    assert run("detect", path, "--out", tmp_path / "m.json").returncode == 0
+    in_cm, in_m = (json.loads((tmp_path / name).read_text())["mushrooms"] for name in ("cm.json", "m.json"))
+    assert len(in_cm) == len(in_m) >= 4
+    np.testing.assert_allclose([c["center"] for c in in_cm], [c["center"] for c in in_m], atol=1e-4)
+
+
+def test_a_cloud_that_is_no_bed_is_refused_unless_forced(tmp_path, weights):
+    cube = write_ply(tmp_path / "cube.ply", np.random.default_rng(2).uniform(-0.5, 0.5, (200_000, 3)))
+    out = tmp_path / "d.json"
+    one_line_error(run("detect", cube, "--model", weights, "--out", out), "does not look like a bed")
+    assert not out.exists()
+    forced = run("detect", cube, "--model", weights, "--out", out, "--force")
+    assert forced.returncode == 0 and "warning:" in forced.stderr and out.exists()
+
+
+def test_bed_frame_is_refused_for_a_cloud_that_is_not_in_it(tmp_path, scene_ply, weights):
+    from scipy.spatial.transform import Rotation
+
+    path, scene = scene_ply
+    tilted = write_ply(tmp_path / "tilted.ply", scene.points @ Rotation.from_euler("x", 40, degrees=True).as_matrix().T)
+    one_line_error(run("detect", tilted, "--bed-frame", "--model", weights, "--out", tmp_path / "t.json"),
+                   "tilted 40 deg")
+    lifted = write_ply(tmp_path / "lifted.ply", scene.points + [0.0, 0.0, 0.3])
+    one_line_error(run("detect", lifted, "--bed-frame", "--model", weights, "--out", tmp_path / "l.json"),
+                   "30 cm from the frame's origin")
+    assert run("detect", path, "--bed-frame", "--model", weights, "--out", tmp_path / "b.json").returncode == 0

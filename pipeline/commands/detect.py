@@ -23,8 +23,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--zoom", type=parse_zoom, help="scale the network reads the cloud at (default: the one "
                         f"the weights record, {SHIPPED_ZOOM} for the shipped model, lowered for clouds sparser than "
                         "its training beds)")
+    parser.add_argument("--units", choices=["auto", "m", "cm", "mm"], default="auto",
+                        help="the cloud's length unit (default auto: the one in which its point spacing and width "
+                             "are a bed's; a .npz scene is in metres)")
     parser.add_argument("--bed-frame", action="store_true",
-                        help="the cloud is already in the bed frame (z up, origin on the bed plane)")
+                        help="the cloud is already in the bed frame (z up, origin on the bed plane; checked)")
+    parser.add_argument("--force", action="store_true",
+                        help="detect on a cloud that does not look like a bed, or whose --bed-frame does not fit it")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -33,40 +38,35 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from common.geometry import transform_points
-    from fusion.bed import estimate_bed_frame
     from perception.detect import detect_points, log_rerun, transform_result
     from perception.instances import ClusterConfig
-    from pipeline.clouds import load_cloud
+    from pipeline.clouds import load_cloud, not_a_bed, too_many_caps
     from pipeline.rerun_sink import rerun_stream
 
     if Path(args.cloud).suffix.lower() == ".mcap" and _is_raw_session(Path(args.cloud)):
         return _detect_session(args)
     try:
-        cloud = load_cloud(Path(args.cloud))
+        cloud = load_cloud(Path(args.cloud), args.units)
     except ValueError as error:
         raise CliError(str(error)) from None
     out = writable_file(args.out, inputs=(args.cloud, model_path(args.model)))
     rrd = writable_file(args.rrd, inputs=(args.cloud, model_path(args.model)))
     if rrd is not None and rrd.resolve() == out.resolve():
         raise CliError(f"--out and --rrd are both {args.out}; give them different names")
-    if cloud.unit_scale != 1.0:
-        print(f"note: {args.cloud} spans {cloud.extent:.3g} units, "
-              "so it is read as millimetres and converted to metres", file=sys.stderr)
+    if args.units == "auto" and cloud.units != "m":
+        print(f"note: {args.cloud} is read in {UNIT_NAMES[cloud.units]} (its points lie {cloud.spacing:.3g} units "
+              f"apart over {cloud.extent:.3g}); give --units to say otherwise", file=sys.stderr)
     model, _ = load_model(args.model)
     points = cloud.points
-    if cloud.in_bed_frame or args.bed_frame:
-        T_input_bed, frame = np.eye(4), "bed"
-    else:
-        try:
-            T_input_bed = estimate_bed_frame(points)
-        except (ValueError, RuntimeError) as error:
-            raise CliError(f"cannot find the bed plane: {error}") from None
-        frame = "input"
+    _refuse_unless_forced(args, cloud.unit_doubt)
+    T_input_bed, frame = _bed_frame(args, cloud)
     bed_points = transform_points(np.linalg.inv(T_input_bed), points)
+    _refuse_unless_forced(args, not_a_bed(bed_points))
     try:
         result = detect_points(model, bed_points, ClusterConfig(method=args.clustering), zoom=args.zoom)
     except ValueError as error:
         raise CliError(str(error)) from None
+    _refuse_unless_forced(args, too_many_caps(bed_points, len(result.caps)))
     result = transform_result(result, T_input_bed, frame)
     print(f"{len(result.caps)} caps in {args.cloud} ({len(points)} points, frame: {frame}, metres)")
     _print_caps(result, T_input_bed[:3, 2])
@@ -78,6 +78,41 @@ def run(args: argparse.Namespace) -> int:
             log_rerun(rec, result, points)
     print(f"detections: {out}" + (f"  rerun: {rrd}" if rrd else ""))
     return 0
+
+
+UNIT_NAMES = {"m": "metres", "cm": "centimetres", "mm": "millimetres"}
+
+
+def _bed_frame(args: argparse.Namespace, cloud):
+    """T_input_bed and the name of the frame the caps are given in: the bed frame of a scene or of a
+    cloud said to be in it (``--bed-frame``, checked against the cloud's own bed plane), else the
+    input's, with the bed plane found in it."""
+    import numpy as np
+
+    from fusion.bed import estimate_bed_frame
+    from pipeline.clouds import bed_frame_mismatch
+
+    if cloud.in_bed_frame:
+        return np.eye(4), "bed"
+    try:
+        T_input_bed = estimate_bed_frame(cloud.points)
+    except (ValueError, RuntimeError) as error:
+        raise CliError(f"cannot find the bed plane: {error}") from None
+    if not args.bed_frame:
+        return T_input_bed, "input"
+    mismatch = bed_frame_mismatch(T_input_bed)
+    if mismatch:
+        _refuse_unless_forced(args, f"{mismatch}, so it is not in the bed frame: drop --bed-frame")
+    return np.eye(4), "bed"
+
+
+def _refuse_unless_forced(args: argparse.Namespace, reason: str | None) -> None:
+    """A one-line refusal for a cloud that is no bed (``reason``), a warning with ``--force``."""
+    if reason is None:
+        return
+    if not args.force:
+        raise CliError(f"{args.cloud} does not look like a bed seen from above: {reason} (--force detects anyway)")
+    print(f"warning: {args.cloud}: {reason}", file=sys.stderr)
 
 
 def _is_raw_session(path: Path) -> bool:
