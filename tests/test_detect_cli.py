@@ -170,7 +170,10 @@ def test_outputs_through_links(tmp_path, weights, scene_ply):
     target = tmp_path / "real.json"
     target.write_text("old")
     (tmp_path / "link.json").symlink_to(target)
-    assert run("detect", ply, "--model", weights, "--out", tmp_path / "link.json").returncode == 0
+    one_line_error(run("detect", ply, "--model", weights, "--out", tmp_path / "link.json"),
+                   "real.json exists: pass --overwrite")  # the file a link points to is an output too
+    assert target.read_text() == "old"
+    assert run("detect", ply, "--model", weights, "--out", tmp_path / "link.json", "--overwrite").returncode == 0
     assert (tmp_path / "link.json").is_symlink() and json.loads(target.read_text())["frame"] == "input"
     (tmp_path / "dangling.json").symlink_to(tmp_path / "far" / "away.json")
     one_line_error(run("detect", ply, "--model", weights, "--out", tmp_path / "dangling.json"), "link to nothing")
@@ -308,7 +311,7 @@ def test_detect_warns_outside_the_operating_range(tmp_path, weights):
     for spacing in (0.003, 0.005):
         scene = generate_scene(11, SceneConfig(spacing=spacing, jitter=(1.0, 1.0)))
         cloud = write_ply(tmp_path / f"bed{spacing}.ply", scene.points)
-        result = run("detect", cloud, "--out", tmp_path / "d.json", "--model", weights, "--bed-frame")
+        result = run("detect", cloud, "--out", tmp_path / f"d{spacing}.json", "--model", weights, "--bed-frame")
         assert result.returncode == 0, result.stderr
         sparse = [line for line in result.stderr.splitlines() if "lie as far apart" in line]
         assert len(sparse) == (spacing == 0.005)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from pipeline.commands.common import CliError, writable_file
+from pipeline.commands.common import (CliError, add_overwrite_flag, refuse_to_replace, writable_file)
 
 NAME = "average"
 HELP = "average the weights of models fine-tuned from one start (a model soup)"
@@ -14,6 +14,7 @@ HELP = "average the weights of models fine-tuned from one start (a model soup)"
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("weights", nargs="+", help="two or more model.pt files that share a start (--init)")
     parser.add_argument("--out", required=True, help="the weights file (.pt) to write")
+    add_overwrite_flag(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -23,6 +24,7 @@ def run(args: argparse.Namespace) -> int:
         if not Path(path).is_file():
             raise CliError(f"no weights file at {path}")
     out = writable_file(args.out, inputs=tuple(args.weights), suffix=".pt")
+    refuse_to_replace([out], args.overwrite)
     try:
         model, meta = average_weights([Path(path) for path in args.weights])
     except ValueError as error:

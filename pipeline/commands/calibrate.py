@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from pipeline.commands.common import CliError, writable_file
+from pipeline.commands.common import (CliError, add_overwrite_flag, refuse_to_replace, writable_file)
 
 NAME = "calibrate"
 HELP = "turntable axis and camera extrinsics from a recorded turn"
@@ -15,6 +15,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--session", required=True, help="an MCAP recording of one full turn")
     parser.add_argument("--out", required=True, help="the rig file (JSON) to write")
     parser.add_argument("--reference", help="the camera whose frame defines the rig (default: the first)")
+    add_overwrite_flag(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -25,6 +26,7 @@ def run(args: argparse.Namespace) -> int:
     from fusion.turntable import estimate_rig
 
     out = writable_file(args.out, inputs=(args.session,))
+    refuse_to_replace([out], args.overwrite)
     try:
         with McapSource(args.session) as session:
             frames = list(session)

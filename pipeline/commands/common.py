@@ -62,6 +62,21 @@ def writable_file(path: str | None, inputs: tuple[str | None, ...] = (), suffix:
     return file
 
 
+OVERWRITE_HELP = "replace outputs that exist (without it no command replaces a file it did not just make)"
+
+
+def add_overwrite_flag(parser: argparse.ArgumentParser) -> None:
+    """``--overwrite``: the one switch with which a command replaces its earlier outputs."""
+    parser.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
+
+
+def refuse_to_replace(paths, overwrite: bool) -> None:
+    """A CliError naming the first of ``paths`` (None ignored) that exists, unless ``overwrite``."""
+    taken = [Path(path) for path in paths if path is not None and Path(path).exists()]
+    if taken and not overwrite:
+        raise CliError(f"{taken[0]} exists: pass --overwrite to replace it, or choose another output")
+
+
 def replace_file(path: Path, text: str) -> None:
     """Write through a temporary file renamed over ``path``: a failed write leaves an earlier file
     whole and no temporary file behind."""

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import argparse
 
-from pipeline.commands.common import (CliError, CommandFailed, load_model, parse_seed, parse_threads, positive,
-                                      torch_threads, writable_dir)
+from pipeline.commands.common import (CliError, CommandFailed, add_overwrite_flag, load_model, parse_seed,
+                                      parse_threads, positive, refuse_to_replace, torch_threads, writable_dir)
 
 OUTPUTS = ("session.mcap", "detections.json", "demo.rrd")
-"""What a demo writes into --out; none is replaced without --overwrite (as with record)."""
+"""What a demo writes into --out; none is replaced without --overwrite."""
 
 NAME = "demo"
 HELP = "the whole chain on a virtual turntable: capture, MCAP, fusion, detection, Rerun (no hardware)"
@@ -23,7 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--spawn", action="store_true", help="also show the run in a Rerun viewer")
     parser.add_argument("--no-rrd", action="store_true", help="do not write demo.rrd")
     parser.add_argument("--threads", type=parse_threads, help="torch threads (default: all cores)")
-    parser.add_argument("--overwrite", action="store_true", help="replace the outputs of an earlier demo in --out")
+    add_overwrite_flag(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -32,10 +32,7 @@ def run(args: argparse.Namespace) -> int:
 
     model, _ = load_model(args.model)
     out_dir = writable_dir(args.out)
-    taken = [out_dir / name for name in OUTPUTS if (out_dir / name).exists()]
-    if taken and not args.overwrite:
-        raise CliError(f"{taken[0]} exists (an earlier run's output): pass --overwrite to replace it, or "
-                       "choose another --out")
+    refuse_to_replace([out_dir / name for name in OUTPUTS], args.overwrite)
     torch_threads(args.threads)
     print(f"a virtual D405 circles synthetic bed {args.seed} ({args.views} views, 848x480); "
           f"model: {args.model or 'shipped'}")

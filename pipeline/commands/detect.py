@@ -6,8 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipeline.commands.common import (CLUSTERING, SHIPPED_ZOOM, CliError, load_model, model_path, parse_zoom,
-                                      replace_file, writable_file)
+from pipeline.commands.common import (CLUSTERING, SHIPPED_ZOOM, CliError, add_overwrite_flag, load_model, model_path,
+                                      parse_zoom, refuse_to_replace, replace_file, writable_file)
 
 NAME = "detect"
 HELP = ("find caps in a point cloud (.ply, .pcd, .npz) or a session .mcap (its fused cloud, or its frames fused "
@@ -28,6 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "are a bed's; a .npz scene is in metres)")
     parser.add_argument("--bed-frame", action="store_true",
                         help="the cloud is already in the bed frame (z up, origin on the bed plane; checked)")
+    add_overwrite_flag(parser)
     parser.add_argument("--force", action="store_true",
                         help="detect on a cloud that does not look like a bed, or whose --bed-frame does not fit it")
 
@@ -62,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
     T_input_bed, frame = _bed_frame(args, cloud)
     bed_points = transform_points(np.linalg.inv(T_input_bed), points)
     _refuse_unless_forced(args, not_a_bed(bed_points))
+    refuse_to_replace([out, rrd], args.overwrite)
     try:
         result = detect_points(model, bed_points, ClusterConfig(method=args.clustering), zoom=args.zoom)
     except ValueError as error:
@@ -142,6 +144,7 @@ def _detect_session(args: argparse.Namespace) -> int:
     out = writable_file(args.out, inputs=(args.cloud, model_path(args.model)), suffix=".json")
     rrd = writable_file(args.rrd, inputs=(args.cloud, model_path(args.model)), suffix=".rrd")
     model, _ = load_model(args.model)
+    refuse_to_replace([out, rrd], args.overwrite)
     source = McapSource(args.cloud)
     try:
         source.open()

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from pipeline.commands.common import (SHIPPED_ZOOM, SPACING_HELP, VISIBILITY, CliError, add_ray_flag, load_model,
-                                      json_text, model_path, parse_spacing, parse_zoom, positive, ray_options,
-                                      replace_file, writable_file)
+from pipeline.commands.common import (SHIPPED_ZOOM, SPACING_HELP, VISIBILITY, CliError, add_overwrite_flag,
+                                      add_ray_flag, json_text, load_model, model_path, parse_spacing, parse_zoom,
+                                      positive, ray_options, refuse_to_replace, replace_file, writable_file)
 
 PAPER = {"ap25": {"meanshift": 0.9957, "dbscan": 0.9920}, "ap50": {"meanshift": 0.8195, "dbscan": 0.8148},
          "scale_err": 0.048, "cosine": 0.9973, "angle_deg": 4.22}
@@ -41,6 +41,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--encodings", help="--table 2: the folder of the three encodings' training runs "
                         "(python bench/encodings.py --out DIR makes them)")
     parser.add_argument("--quiet", action="store_true")
+    add_overwrite_flag(parser)
     add_ray_flag(parser, "read the beds as Ray tasks (the same figures as here)")
 
 
@@ -71,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
 
     json_path = writable_file(args.json, inputs=(model_path(args.model),))
     model, meta = load_model(args.model)
+    refuse_to_replace([json_path], args.overwrite)
     if args.table:
         return _paper_tables(args, model, json_path)
     zoom = args.zoom

@@ -7,8 +7,9 @@ import sys
 import time
 from pathlib import Path
 
-from pipeline.commands.common import (CAMERAS, STOP_EXIT, CliError, CommandFailed, load_model, parse_seed,
-                                      parse_threads, positive, torch_threads, writable_file, written_files)
+from pipeline.commands.common import (CAMERAS, STOP_EXIT, CliError, CommandFailed, add_overwrite_flag, load_model,
+                                      parse_seed, parse_threads, positive, refuse_to_replace, torch_threads,
+                                      writable_file, written_files)
 
 NAME = "live"
 HELP = "capture, fuse and detect as frames arrive, shown in Rerun and recorded"
@@ -31,7 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rig", help="rig file from mushroom-pose calibrate (turntable or several cameras)")
     add_config_flags(parser, "pipeline.runner:FusionStage", STAGE_FLAGS, only=("window",))
     parser.add_argument("--record", help="record the session (frames, fused clouds, caps) to this .mcap")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing --record file")
+    add_overwrite_flag(parser)
     parser.add_argument("--rrd", help="save the Rerun recording to this .rrd")
     parser.add_argument("--detections", help="keep the newest caps in this JSON file")
     viewer = parser.add_mutually_exclusive_group()
@@ -51,10 +52,10 @@ def _checked_outputs(args: argparse.Namespace) -> tuple[Path | None, Path | None
         raise CliError("--playback plays a RealSense device file: use it with --camera realsense")
     if args.playback and not Path(args.playback).is_file():
         raise CliError(f"--playback: no device file at {args.playback}")
-    record = writable_file(args.record, suffix=".mcap")
-    if record is not None and record.exists() and not args.overwrite:
-        raise CliError(f"{record} exists: pass --overwrite to replace it")
-    return record, writable_file(args.rrd, suffix=".rrd"), writable_file(args.detections, suffix=".json")
+    outputs = (writable_file(args.record, suffix=".mcap"), writable_file(args.rrd, suffix=".rrd"),
+               writable_file(args.detections, suffix=".json"))
+    refuse_to_replace(outputs, args.overwrite)
+    return outputs
 
 
 def run(args: argparse.Namespace) -> int:

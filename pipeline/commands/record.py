@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from pipeline.commands.common import CAMERAS, STOP_EXIT, CliError, CommandFailed, parse_seed, positive, writable_file
+from pipeline.commands.common import (CAMERAS, STOP_EXIT, CliError, CommandFailed, add_overwrite_flag, parse_seed,
+                                      positive, refuse_to_replace, writable_file)
 
 NAME = "record"
 HELP = "record a depth camera session to MCAP"
@@ -19,7 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "source ends or Ctrl-C)")
     parser.add_argument("--seed", type=parse_seed, default=0, help="virtual camera: which synthetic bed")
     parser.add_argument("--views", type=positive(int), default=18, help="virtual camera: turntable views")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    add_overwrite_flag(parser)
     parser.add_argument("--quiet", action="store_true")
 
 
@@ -29,8 +30,7 @@ def run(args: argparse.Namespace) -> int:
     from pipeline.sources import make_source
 
     out = writable_file(args.out)
-    if out.exists() and not args.overwrite:
-        raise CliError(f"{out} exists: pass --overwrite to replace it")
+    refuse_to_replace([out], args.overwrite)
     written = [0]
     try:
         source = make_source(args.camera, args.serial, args.seed, args.views)

@@ -7,9 +7,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipeline.commands.common import (STOP_EXIT, CliError, CommandFailed, add_ray_flag, load_model, model_path,
-                                      parse_threads, positive, ray_options, torch_threads, writable_dir,
-                                      writable_file, written_files)
+from pipeline.commands.common import (STOP_EXIT, CliError, CommandFailed, add_overwrite_flag, add_ray_flag, load_model,
+                                      model_path, parse_threads, positive, ray_options, refuse_to_replace,
+                                      torch_threads, writable_dir, writable_file, written_files)
 
 TOLERANCES = "pipeline.check:Tolerances"
 TOLERANCE = "tol_"
@@ -45,6 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "per fused unit) instead of the session's own")
     add_config_flags(parser, TOLERANCES, TOLERANCE_FLAGS, prefix=TOLERANCE)
     parser.add_argument("--verbose", action="store_true", help="--check: list every cap, not only changes")
+    add_overwrite_flag(parser)
     parser.add_argument("--model", help="weights file (default: the shipped model)")
     add_config_flags(parser, REPLAY_OPTIONS, only=("clustering",))
     parser.add_argument("--threads", type=parse_threads, help="torch threads (default: all cores)")
@@ -71,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
     if args.expected and not args.check:
         raise CliError("--expected is what --check compares with: add --check")
     model, _ = load_model(args.model)
+    refuse_to_replace([out_dir / "replay.mcap", out_dir / "detections.json", rrd], args.overwrite)
     torch_threads(args.threads)
     try:
         expected = read_expected(Path(args.expected)) if args.expected else None
@@ -126,6 +128,7 @@ def _replay_many(args: argparse.Namespace) -> int:
         raise CliError(str(error)) from None
     out_dir = writable_dir(args.out)
     load_model(args.model)  # a bad weights file is one error here, not one per session
+    refuse_to_replace([out_dir / "report.json"], args.overwrite)
     options = config_from_args(ReplayOptions, args)
     tolerances = config_from_args(Tolerances, args, prefix=TOLERANCE) if args.check else None
     job = FarmJob(str(model_path(args.model)), str(out_dir), options, tolerances, threads=args.threads or 1)

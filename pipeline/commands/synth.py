@@ -6,9 +6,9 @@ import argparse
 import sys
 import time
 
-from pipeline.commands.common import (SPACING_HELP, VISIBILITY, CliError, CommandFailed, add_ray_flag,
-                                      parse_mushroom_count, parse_seed, parse_spacing, positive, ray_options,
-                                      writable_dir, writable_file)
+from pipeline.commands.common import (SPACING_HELP, VISIBILITY, CliError, CommandFailed, add_overwrite_flag,
+                                      add_ray_flag, parse_mushroom_count, parse_seed, parse_spacing, positive,
+                                      ray_options, refuse_to_replace, writable_dir, writable_file)
 
 NAME = "synth"
 HELP = "generate synthetic mushroom beds with ground truth"
@@ -29,14 +29,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-ply", action="store_true", help="write only the .npz files")
     parser.add_argument("--preview", help="also render the first bed to this PNG (shaded meshes, oblique view)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_overwrite_flag(parser)
     add_ray_flag(parser, "make the beds as Ray tasks (the same beds as here)")
 
 
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from perception.synthetic.dataset import (BED_SETS, generate_many, log_scene, preset_config, scene_seeds,
-                                              write_scene)
+    from perception.synthetic.dataset import (BED_SETS, generate_many, log_scene, preset_config, scene_path,
+                                              scene_seeds, write_scene)
     from perception.synthetic.scene import SceneConfig
     from pipeline.rerun_sink import rerun_stream, set_frame
 
@@ -52,7 +53,9 @@ def run(args: argparse.Namespace) -> int:
         config = preset_config(args.preset, args.visibility, args.spacing)
     else:
         seeds = scene_seeds(args.seed, args.scenes)
-        config = SceneConfig(mushrooms=(low, high), visibility=args.visibility, spacing=args.spacing or SceneConfig.spacing)
+        config = SceneConfig(mushrooms=(low, high), visibility=args.visibility,
+                             spacing=args.spacing or SceneConfig.spacing)
+    refuse_to_replace([scene_path(out, index) for index in range(len(seeds))] + [rrd, preview], args.overwrite)
     mushrooms, points, started = [], [], time.perf_counter()
     with rerun_stream(rrd) as rec:
         for index, scene in enumerate(generate_many(seeds, config, progress=not args.quiet,

@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from pipeline.commands.common import (CliError, CommandFailed, add_ray_flag, at_most, non_negative, parse_learning_rate,
-                                      parse_run_fraction, parse_seed, parse_spacing, parse_threads, parse_zoom, positive,
-                                      ray_options, torch_threads, writable_dir)
+from pipeline.commands.common import (CliError, CommandFailed, add_ray_flag, at_most, non_negative,
+                                      parse_learning_rate, parse_run_fraction, parse_seed, parse_spacing, parse_threads,
+                                      parse_zoom, positive, ray_options, torch_threads, writable_dir)
 
 TRAIN_CONFIG = "perception.train:TrainConfig"
 SCENE_CONFIG = "perception.synthetic.scene:SceneConfig"
