@@ -38,8 +38,8 @@ def build_parser(only: list[str] | None = None) -> argparse.ArgumentParser:
     return parser
 
 
-WRITE_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO, errno.EFBIG}
-"""Errors of a write that the user's input did not cause: the disk, not the command, failed."""
+DISK_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO, errno.EFBIG}
+"""Errors the user's input did not cause: the disk, not the command, failed."""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -75,10 +75,10 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{command}: error: {error}", file=sys.stderr)
             return 1
     except OSError as error:
-        if interrupted or error.errno not in WRITE_ERRORS:
+        if interrupted or error.errno not in DISK_ERRORS:
             raise
-        where = f" {error.filename}" if error.filename else ""
-        print(f"{command}: error: cannot write{where}: {error.strerror}", file=sys.stderr)
+        where = f" ({error.filename})" if error.filename else ""
+        print(f"{command}: error: {error.strerror}{where}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         pass

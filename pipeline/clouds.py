@@ -46,6 +46,13 @@ class LoadedCloud:
 def load_cloud(path: Path, units: str = "auto") -> LoadedCloud:
     """A cloud in metres, from a file in ``units`` ("auto": those its spacing and width say, see
     ``infer_units``); raises ValueError with a one-line reason when the file cannot be used."""
+    try:
+        return _load_cloud(Path(path), units)
+    except OSError as error:  # unreadable: permissions, a failing disk
+        raise ValueError(f"cannot read {path}: {error.strerror or error}") from None
+
+
+def _load_cloud(path: Path, units: str) -> LoadedCloud:
     path = Path(path)
     if not path.exists():
         raise ValueError(f"{path} does not exist")

@@ -2,6 +2,7 @@
 
 import json
 import subprocess
+from pathlib import Path
 
 import numpy as np
 import open3d as o3d
@@ -78,7 +79,7 @@ def test_detect_writes_json_in_the_input_frame(tmp_path, scene_ply):
     ("nan", "NaN or infinite"), ("empty", "empty"), ("missing", "does not exist"), ("format", "unsupported"),
     ("corrupt-model", "not a mushroom-pose weights file"), ("missing-model", "does not exist"),
     ("folder", "is a folder"), ("line", "on a line"), ("far", "does not look like a bed"),
-    ("diverged-model", "not finite"), ("ascii-short", "cut short"),
+    ("diverged-model", "not finite"), ("ascii-short", "cut short"), ("unreadable", "cannot read"),
 ])
 def test_detect_bad_input(tmp_path, weights, case, fragment):
     cloud = write_ply(tmp_path / "c.ply", np.random.default_rng(0).uniform(-0.2, 0.2, (500, 3)) * [1, 1, 0.05])
@@ -110,6 +111,11 @@ def test_detect_bad_input(tmp_path, weights, case, fragment):
         cloud = tmp_path / "short.ply"
         cloud.write_text("ply\nformat ascii 1.0\nelement vertex 10\nproperty float x\nproperty float y\n"
                          "property float z\nend_header\n0 0 0\n0.1 0 0\n")
+    elif case == "unreadable":  # reading it fails even for root, which any permission would let read
+        if not Path("/proc/self/mem").exists():
+            pytest.skip("needs /proc/self/mem, a file whose reads fail")
+        cloud = tmp_path / "unreadable.ply"
+        cloud.symlink_to("/proc/self/mem")
     elif case == "far":
         points = np.random.default_rng(0).uniform(-0.2, 0.2, (500, 3)) * [1, 1, 0.05] + [0.0, 0.0, 500.0]
         np.savez(tmp_path / "far.npz", points=points)
