@@ -152,6 +152,31 @@ def _differences(saved: dict, asked: dict, prefix: str = "") -> str:
     return ", ".join(f for f in found if f)
 
 
+def resumed_config(saved: dict, asked: TrainConfig) -> TrainConfig:
+    """The configuration a resumed run goes on with: the checkpoint's (``saved``, a ``to_dict``) where
+    ``asked`` leaves a field at its default, so that ``train --resume`` needs no flag repeated; a
+    ValueError names each field ``asked`` sets to another value than the run's."""
+    default = TrainConfig().to_dict()
+    saved = {**default, **saved}  # a checkpoint without a field ran with its default
+    saved["scene"] = {**default["scene"], **saved["scene"], "spacing": _scene_spacing(saved)}
+    saved["scene"].pop("voxel", None)
+    wanted = asked.to_dict()
+    merged = {name: saved[name] if value == default[name] else value
+              for name, value in wanted.items() if name != "scene"}
+    merged["scene"] = {name: saved["scene"][name] if value == default["scene"][name] else value
+                       for name, value in wanted["scene"].items()}
+    differ = _differences(saved, merged)
+    if differ:
+        raise ValueError(f"the run was made with a different configuration ({differ}); resume with its flags, or "
+                         "none of them, or use a new run folder")
+
+    def tuples(values: dict) -> dict:
+        return {name: tuple(value) if isinstance(value, list) else value for name, value in values.items()}
+
+    scene = SceneConfig(**tuples(merged.pop("scene")), sensor=asked.scene.sensor)
+    return TrainConfig(**tuples(merged), scene=scene)
+
+
 def _all_finite(model: torch.nn.Module) -> bool:
     """Whether every weight and running statistic is a finite number (a diverged run's are not)."""
     return all(torch.isfinite(value).all() for value in model.state_dict().values() if value.is_floating_point())
@@ -384,6 +409,8 @@ def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str 
     stopped early (at iteration ``stop_at`` or after ``max_minutes``) with a checkpoint to resume. With
     ``ray_address`` ("local", or a cluster's address) the scenes are made as Ray tasks: the same scenes,
     so the same run."""
+    if resume and (run_dir / "checkpoint.pt").is_file():
+        config = resumed_config(_load_checkpoint(run_dir / "checkpoint.pt", "cpu")["train_config"], config)
     run = TrainingRun(config, run_dir, _resolve_device(device), resume, ray_address)
     end = config.iterations if stop_at is None else min(stop_at, config.iterations)
     reached = run.iterate(end, progress=progress, rerun=rerun, max_minutes=max_minutes)
@@ -431,15 +458,7 @@ class TrainingRun:
 
     def _resume(self) -> None:
         """Model, optimiser, schedule, weights' mean and torch RNG as the checkpoint left them."""
-        state = _load_checkpoint(self.checkpoint_path, self.device)
-        # a checkpoint without a field ran with its default
-        saved = {**TrainConfig().to_dict(), **state["train_config"]}
-        saved["scene"] = {**saved["scene"], "spacing": _scene_spacing(saved)}
-        saved["scene"].pop("voxel", None)
-        differ = _differences(saved, self.config.to_dict())
-        if differ:
-            raise ValueError(f"{self.checkpoint_path} was made with a different configuration ({differ}); "
-                             "resume with the same flags or use a new run folder")
+        state = _load_checkpoint(self.checkpoint_path, self.device)  # its configuration is ours (resumed_config)
         self.model.load_state_dict(state["model"])
         self.model.inference_zoom = state.get("inference_zoom", UNRECORDED_ZOOM)
         if self.averaged is not None:

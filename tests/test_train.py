@@ -473,3 +473,18 @@ def test_training_learns_one_bed_by_heart(tmp_path, monkeypatch):
         assert fell >= factor, f"the {term} loss fell only {fell:.1f} times in 300 steps on one bed"
     model, _ = load_weights(weights)
     assert len(detect_points(model, bed["points"].astype(np.float64), zoom=1.0).caps) == 6
+
+
+def test_resume_goes_on_with_the_runs_own_flags(tmp_path, tiny_network):
+    """``train --out RUN --resume`` with none of the run's flags: the same weights as the run straight
+    through; a flag given again with its own value is fine."""
+    config = TrainConfig(iterations=3, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES, lr=0.002,
+                         checkpoint_every=1, queue_size=2)
+    straight = train(config, tmp_path / "straight", progress=False, rerun=False)
+    assert train(config, tmp_path / "resumed", progress=False, rerun=False, stop_at=2) is None
+    resumed = train(TrainConfig(), tmp_path / "resumed", resume=True, progress=False, rerun=False)
+    for a, b in zip(load_weights(straight)[0].state_dict().values(), load_weights(resumed)[0].state_dict().values()):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert load_weights(resumed)[1]["train_config"]["lr"] == 0.002
+    again = TrainConfig(lr=0.002, network=tiny_network)
+    assert train(again, tmp_path / "resumed", resume=True, progress=False, rerun=False) is not None

@@ -59,7 +59,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="run folder: checkpoint.pt, history.csv, model.pt, .rrd")
     add_config_flags(parser, TRAIN_CONFIG, TRAIN_FLAGS, exclude=("scene",))
     add_config_flags(parser, SCENE_CONFIG, SCENE_FLAGS, only=tuple(SCENE_FLAGS), prefix=SCENE)
-    parser.add_argument("--resume", action="store_true", help="continue the checkpoint in --out exactly")
+    parser.add_argument("--resume", action="store_true", help="continue the checkpoint in --out exactly, with the "
+                        "run's own flags (none need repeating; one given must match)")
     parser.add_argument("--max-minutes", type=positive(float),
                         help="stop cleanly with a checkpoint after this many minutes (resume later)")
     parser.add_argument("--device", help="cpu or cuda (default: cuda when available)")
