@@ -1,11 +1,15 @@
 """record: a virtual session round-trips bit-exact through MCAP; bad cameras fail in one line."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from capture.mcap_io import McapSource
 from pipeline.sources import VirtualBed, virtual_bed_source
 from test_detect_cli import one_line_error, run
+
+RECORDINGS = Path(__file__).resolve().parents[1] / "recordings"
 
 
 def test_record_virtual_round_trips_bit_exact(tmp_path):
@@ -169,6 +173,22 @@ def test_calibrate_recovers_the_virtual_turntable(tmp_path):
     assert np.degrees(np.arccos(min(1.0, axis[2]))) < 0.04
     assert np.linalg.norm(np.asarray(rig.turntable.axis_point)[:2]) < 0.0003
     assert abs(np.degrees(rig.angle_step) - 45.0) < 0.015
+
+
+def test_calibrate_warns_when_the_session_is_less_than_a_turn(tmp_path):
+    from capture.mcap_io import McapRecorder
+
+    frames = list(McapSource(RECORDINGS / "turntable-12.mcap"))
+    part = tmp_path / "part.mcap"
+    with McapRecorder(part) as recorder:
+        for frame in frames[:5]:
+            recorder.write(frame)
+    partial = run("calibrate", "--session", part, "--out", tmp_path / "part.json")
+    assert partial.returncode == 0
+    warnings = [line for line in partial.stderr.splitlines() if line.startswith("warning:")]
+    assert len(warnings) == 1 and "covers about 150 deg" in warnings[0] and "5 views 30.0 deg apart" in warnings[0]
+    whole = run("calibrate", "--session", RECORDINGS / "turntable-12.mcap", "--out", tmp_path / "whole.json")
+    assert whole.returncode == 0 and "warning" not in whole.stderr
 
 
 def test_calibrate_rejects_a_file_that_is_not_mcap(tmp_path):

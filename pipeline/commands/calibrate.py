@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 
 from pipeline.commands.common import (CliError, add_overwrite_flag, refuse_to_replace, writable_file)
@@ -48,4 +49,26 @@ def run(args: argparse.Namespace) -> int:
                      f"{np.round(1000 * np.asarray(rig.turntable.axis_point), 1).tolist()} mm, step "
                      f"{np.degrees(rig.angle_step):.2f} deg")
     print(f"rig from {len(frames)} frames of {cameras} in {time.perf_counter() - started:.1f} s: {turntable} -> {out}")
+    _warn_on_coverage(rig, frames, args.session)
     return 0
+
+
+WHOLE_TURN_DEG = 330.0
+"""A calibration turn that covers less than this (views times the angle step) is not a whole turn."""
+
+
+def _warn_on_coverage(rig, frames, session: str) -> None:
+    """Say so when the session's reference camera covers less than a whole turn: a turntable's axis
+    from part of a circle is less certain (and a truncated recording looks like this)."""
+    import numpy as np
+
+    if rig.turntable is None or rig.angle_step is None:
+        return
+    reference = next(iter(rig.cameras), frames[0].sensor_id)
+    views = sum(frame.sensor_id == reference for frame in frames)
+    covered = float(np.degrees(abs(rig.angle_step))) * views
+    if covered < WHOLE_TURN_DEG:
+        print(f"warning: {session} covers about {covered:.0f} deg of the turntable's turn ({views} views "
+              f"{np.degrees(abs(rig.angle_step)):.1f} deg apart): the axis is less certain than from a whole turn; "
+              "record one whole turn to calibrate", file=sys.stderr)
+
