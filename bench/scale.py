@@ -80,7 +80,10 @@ def print_walls(title: str, walls: dict[str, float]) -> None:
 
 
 def start_cluster(workers: int) -> str:
-    """A head with no CPUs of its own and ``workers`` one-CPU worker processes joining it."""
+    """A head with no CPUs of its own and ``workers`` one-CPU worker processes joining it, on this
+    machine only. Ray's token authentication is turned off for them and for this process (a head may
+    turn it on while its workers and drivers do not, and then refuse them)."""
+    os.environ["RAY_AUTH_MODE"] = "disabled"
     ray = shutil.which("ray", path=str(Path(sys.executable).parent)) or "ray"
     address = f"127.0.0.1:{PORT}"
     subprocess.run([ray, "start", "--head", "--node-ip-address", "127.0.0.1", "--port", str(PORT), "--num-cpus", "0",

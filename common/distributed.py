@@ -7,6 +7,24 @@ from __future__ import annotations
 from typing import Any, Callable, Iterator
 
 
+class RayUnavailable(RuntimeError):
+    """Ray could not be started or reached (one line: where, and Ray's reason)."""
+
+
+def _probe(address: str | None, seconds: float = 5.0) -> None:
+    """A RayUnavailable at once when nothing listens at a ``host:port`` address (Ray itself would keep
+    retrying for minutes)."""
+    import socket
+
+    host, _, port = (address or "").rpartition(":")
+    if not host or not port.isdigit() or "://" in address:
+        return
+    try:
+        socket.create_connection((host, int(port)), timeout=seconds).close()
+    except OSError as error:
+        raise RayUnavailable(f"cannot reach the Ray cluster at {address}: {error.strerror or error}") from None
+
+
 def require_ray() -> Any:
     """The ray module, or a one-line ValueError saying how to install it."""
     try:
@@ -25,7 +43,13 @@ def ray_map(function: Callable, items: list[tuple], address: str | None = None, 
     ray = require_ray()
     started_here = not ray.is_initialized()
     if started_here:
-        ray.init(address=address, include_dashboard=False, log_to_driver=False)
+        _probe(address)
+        try:
+            ray.init(address=address, include_dashboard=False, log_to_driver=False)
+        except Exception as error:  # noqa: BLE001 - Ray raises many kinds; all mean the same here
+            reason = (str(error).strip().splitlines() or [type(error).__name__])[0]
+            where = f"the Ray cluster at {address}" if address else "a local Ray"
+            raise RayUnavailable(f"cannot start or reach {where}: {reason}") from None
     try:
         task = ray.remote(num_cpus=cpus_per_task)(function)
         refs = [ray.put(value) for value in shared]

@@ -11,6 +11,7 @@ import threading
 
 from pipeline.commands import (average, calibrate, cameras, demo, detect, evaluate, live, record, recover, replay,
                                synth, train)
+from common.distributed import RayUnavailable
 from pipeline.commands.common import CliError, CommandFailed
 from pipeline.process import reuse_freed_memory
 
@@ -70,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
         if not interrupted:
             print(f"{command}: error: {error}", file=sys.stderr)
             return 2
-    except CommandFailed as error:
+    except (CommandFailed, RayUnavailable) as error:
         if not interrupted:
             print(f"{command}: error: {error}", file=sys.stderr)
             return 1

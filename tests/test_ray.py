@@ -92,3 +92,18 @@ def test_a_run_trained_on_beds_made_by_ray_tasks_is_the_local_run(tmp_path, loca
     for a, b in zip(load_weights(local)[0].state_dict().values(), load_weights(remote)[0].state_dict().values()):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
     assert (tmp_path / "local" / "history.csv").read_text().count("\n") == 4
+
+
+def test_a_cluster_that_is_not_there_is_one_line_at_once(tmp_path):
+    import socket
+    import subprocess
+    import sys
+
+    with socket.socket() as probe:  # a port nothing listens on
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    result = subprocess.run([sys.executable, "-m", "pipeline.cli", "synth", "--scenes", "1", "--out", str(tmp_path),
+                             "--quiet", "--ray", f"127.0.0.1:{port}"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 1
+    assert result.stderr.strip().splitlines() == [f"mushroom-pose synth: error: cannot reach the Ray cluster at "
+                                                  f"127.0.0.1:{port}: Connection refused"]
