@@ -47,6 +47,7 @@ from mcap_protobuf.decoder import DecoderFactory
 
 from capture.frames import CameraIntrinsics, DepthFrame
 from capture.source import Source, SourceError
+from common.files import atomic_path
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _CAMERA_TOPIC = re.compile(r"^/camera/(?P<sensor>.+)/(?P<kind>depth|color|calibration|meta)$")
@@ -710,33 +711,29 @@ def recover_recording(partial: str | os.PathLike, out: str | os.PathLike | None 
             raise ValueError(f"{partial} is not an MCAP recording")
         file.seek(0)
         size = os.fstat(file.fileno()).st_size
-        scratch = out.with_name(out.name + ".recovering")
         messages = frames = 0
         channels: dict[int, tuple[int, Channel]] = {}
         schemas: dict[int, int] = {0: 0}
-        try:
-            with open(scratch, "wb") as target:
-                writer = Writer(target, compression=CompressionType.ZSTD)
-                writer.start(profile="", library="mushroom-pose recover")
-                for record in _whole_records(file, size):
-                    if isinstance(record, Schema) and record.id not in schemas:
-                        schemas[record.id] = writer.register_schema(record.name, record.encoding, record.data)
-                    elif isinstance(record, Channel) and record.id not in channels and record.schema_id in schemas:
-                        channels[record.id] = (writer.register_channel(record.topic, record.message_encoding,
-                                                                       schemas[record.schema_id], record.metadata),
-                                               record)
-                    elif isinstance(record, Message) and record.channel_id in channels:
-                        channel_id, channel = channels[record.channel_id]
-                        writer.add_message(channel_id, record.log_time, record.data, record.publish_time,
-                                           record.sequence)
-                        messages += 1
-                        frames += channel.topic.endswith("/depth")
-                writer.finish()
+        # keep_suffix: the default temporary name, X.mcap.partial, is the input's own
+        with atomic_path(out, keep_suffix=True) as scratch, open(scratch, "wb") as target:
+            writer = Writer(target, compression=CompressionType.ZSTD)
+            writer.start(profile="", library="mushroom-pose recover")
+            for record in _whole_records(file, size):
+                if isinstance(record, Schema) and record.id not in schemas:
+                    schemas[record.id] = writer.register_schema(record.name, record.encoding, record.data)
+                elif isinstance(record, Channel) and record.id not in channels and record.schema_id in schemas:
+                    channels[record.id] = (writer.register_channel(record.topic, record.message_encoding,
+                                                                   schemas[record.schema_id], record.metadata),
+                                           record)
+                elif isinstance(record, Message) and record.channel_id in channels:
+                    channel_id, channel = channels[record.channel_id]
+                    writer.add_message(channel_id, record.log_time, record.data, record.publish_time,
+                                       record.sequence)
+                    messages += 1
+                    frames += channel.topic.endswith("/depth")
+            writer.finish()
             if messages == 0:
                 raise ValueError(f"{partial} holds no whole message to recover")
-            os.replace(scratch, out)
-        finally:
-            scratch.unlink(missing_ok=True)
     return Recovery(out, messages, frames)
 
 
