@@ -18,7 +18,8 @@ def bed_points():
 @pytest.mark.parametrize("shift", [
     pytest.param((0.1, -0.2, 0.5), marks=pytest.mark.xfail(strict=True, reason="an origin 0.5 m below the bed looks "
                  "like a camera below it, and this bed's relief (caps 1.26 times as high as its cracks are deep) is "
-                 "not plain enough to overrule it")),
+                 "not plain enough to overrule it: the plane alone cannot tell; detect turns the frame by the caps "
+                 "(test_detect_cli.py)")),
     (0.1, -0.2, -0.45), (0.8, 0.0, 0.0), (0.0, 0.0, 10.0)],
     ids=["origin below", "origin above", "origin beside", "origin far below"])
 @pytest.mark.parametrize("tilt_deg", [0.0, 25.0])

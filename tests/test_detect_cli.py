@@ -371,3 +371,17 @@ def test_bed_frame_is_refused_for_a_cloud_that_is_not_in_it(tmp_path, scene_ply,
     one_line_error(run("detect", lifted, "--bed-frame", "--model", weights, "--out", tmp_path / "l.json"),
                    "30 cm from the frame's origin")
     assert run("detect", path, "--bed-frame", "--model", weights, "--out", tmp_path / "b.json").returncode == 0
+
+
+@pytest.mark.parametrize("shift", [(0.1, -0.2, 0.5), (0.1, -0.2, -0.45)], ids=["origin below", "origin above"])
+def test_detect_turns_the_bed_the_way_its_caps_stand_wherever_the_origin_lies(tmp_path, shift):
+    """A bed of 15 caps whose input origin lies 0.5 m below it (fusion.bed's plane then faces down,
+    tests/test_bed_frame.py): the shipped model sees its caps only the right way up, and detect turns
+    the frame so; with the origin above, the frame stands."""
+    scene = generate_scene(7, SceneConfig(mushrooms=(15, 15)))
+    out = tmp_path / "d.json"
+    result = run("detect", write_ply(tmp_path / "bed.ply", scene.points + np.asarray(shift)), "--out", out)
+    assert result.returncode == 0, result.stderr
+    document = json.loads(out.read_text())
+    assert np.asarray(document["T_input_bed"])[2, 2] > 0.99
+    assert 13 <= len(document["mushrooms"]) <= 17

@@ -66,6 +66,11 @@ def run(args: argparse.Namespace) -> int:
     refuse_to_replace([out, rrd], args.overwrite)
     try:
         result = detect_points(model, bed_points, ClusterConfig(method=args.clustering), zoom=args.zoom)
+        if frame == "input":  # the bed plane was found here: which side is up, the caps say
+            T_turned = _turned_by_caps(model, points, T_input_bed, result, args.zoom)
+            if T_turned is not None:
+                T_input_bed, bed_points = T_turned, transform_points(np.linalg.inv(T_turned), points)
+                result = detect_points(model, bed_points, ClusterConfig(method=args.clustering), zoom=args.zoom)
     except ValueError as error:
         raise CliError(str(error)) from None
     _refuse_unless_forced(args, too_many_caps(bed_points, len(result.caps)))
@@ -83,6 +88,24 @@ def run(args: argparse.Namespace) -> int:
 
 
 UNIT_NAMES = {"m": "metres", "cm": "centimetres", "mm": "millimetres"}
+TURN_EVIDENCE = 4.0
+"""How many times more cap voxels the bed turned over must show before detect turns it: caps seen from
+their right side fill thousands of voxels, seen from the wrong side almost none."""
+
+
+def _turned_by_caps(model, points, T_input_bed, result, zoom):
+    """The bed frame turned over (180 degrees about its x axis) when the network sees far more caps that
+    way: the plane's two sides are told apart by the cloud's caps, not by its soil relief or where the
+    input's origin lies, which can mislead ``fusion.bed.up_side``. None when the frame stands."""
+    import numpy as np
+
+    from common.geometry import transform_points
+    from perception.detect import predict
+
+    T_turned = T_input_bed @ np.diag([1.0, -1.0, -1.0, 1.0])
+    seen = int((result.voxels.existence > 0.5).sum())
+    turned = int((predict(model, transform_points(np.linalg.inv(T_turned), points), zoom=zoom).existence > 0.5).sum())
+    return T_turned if turned > TURN_EVIDENCE * max(seen, 10) else None
 
 
 def _bed_frame(args: argparse.Namespace, cloud):
