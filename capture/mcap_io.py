@@ -192,7 +192,7 @@ class McapRecorder:
         self._failures = _WriteFailures()
         self._foxglove_log = logging.getLogger("foxglove")
         self._foxglove_log.addHandler(self._failures)
-        self._propagated, self._foxglove_log.propagate = self._foxglove_log.propagate, False
+        self._foxglove_log.propagate = False
 
     def room_needed(self, message_bytes: int) -> int:
         """Free bytes the disk must keep for a message of ``message_bytes``: the chunk being filled may
@@ -349,7 +349,9 @@ class McapRecorder:
                     os.replace(self.partial_path, self.path)
         finally:
             self._foxglove_log.removeHandler(self._failures)
-            self._foxglove_log.propagate = self._propagated
+            # foxglove's records reach the terminal again once no recorder is open
+            self._foxglove_log.propagate = not any(isinstance(handler, _WriteFailures)
+                                                   for handler in self._foxglove_log.handlers)
 
 
 @dataclass(frozen=True)
