@@ -23,6 +23,7 @@ from capture.frames import DepthFrame
 from capture.source import Source
 from fusion.cloud import FusedCloud, Fuser, FusionConfig, fuse
 from fusion.turntable import Rig
+from pipeline.process import hand_back_freed_memory
 
 
 @dataclass(frozen=True)
@@ -306,6 +307,7 @@ class Runner:
                                     ("counts/caps", len(result.caps)),
                                     ("counts/dropped_units", self.summary.dropped_units)):
                     self._stat(name, value, unit)
+                hand_back_freed_memory()
         except BaseException as error:  # noqa: BLE001 - handed to the main thread
             self._errors.append(error)
             with self._unit_ready:
