@@ -10,7 +10,7 @@
   RSS every minute, the first and last 10 minutes' peaks, turns fused and detected, and frames recorded
   against frames captured.
 
-Usage: python bench/pipeline.py [--turns 5] [--soak-minutes 0 [--soak-speed 1]] [--threads 2]
+Usage: python bench/pipeline.py [--turns 10] [--soak-minutes 0 [--soak-speed 1]] [--threads 2]
 (--turns 0 runs the soak alone)
 """
 
@@ -19,6 +19,10 @@ from pathlib import Path
 
 # the bench folder holds fusion.py and perception.py, which would shadow those packages
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
+
+from pipeline.process import let_idle_threads_sleep, reuse_freed_memory  # noqa: E402
+
+let_idle_threads_sleep()  # as live and replay do, before torch and Open3D load
 
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
@@ -33,7 +37,6 @@ from capture.mcap_io import McapRecorder, McapSource  # noqa: E402
 from capture.source import Source  # noqa: E402
 from perception.detect import DEFAULT_WEIGHTS, detect_points  # noqa: E402
 from perception.train import load_weights  # noqa: E402
-from pipeline.process import reuse_freed_memory  # noqa: E402
 from pipeline.sources import VirtualBed, virtual_bed_source  # noqa: E402
 
 FPS = 15.0
@@ -145,7 +148,7 @@ def soak(model, minutes: float, speed: float, folder: Path) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--turns", type=int, default=5)
+    parser.add_argument("--turns", type=int, default=10)
     parser.add_argument("--model", type=Path, default=DEFAULT_WEIGHTS)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--soak-minutes", type=float, default=0.0)

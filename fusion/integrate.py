@@ -164,7 +164,7 @@ def back_project(frame: DepthFrame, config: IntegrationConfig = IntegrationConfi
     seen = depth_m[depth_m > 0]
     stride = 1
     if multi_view and len(seen):
-        stride = max(1, int(config.voxel / (np.median(seen) / frame.intrinsics.fx)))
+        stride = max(1, round(config.voxel / (np.median(seen) / frame.intrinsics.fx)))
     intrinsics = frame.intrinsics
     sampled = depth_m[::stride, ::stride]
     sampled_intrinsics = CameraIntrinsics(sampled.shape[1], sampled.shape[0], intrinsics.fx / stride,

@@ -23,6 +23,7 @@ from capture.frames import DepthFrame
 from capture.source import Source
 from fusion.cloud import FusedCloud, Fuser, FusionConfig, fuse
 from fusion.turntable import Rig
+from pipeline.perception_process import PerceptionProcess
 from pipeline.process import hand_back_freed_memory
 
 
@@ -56,7 +57,9 @@ class RunConfig:
     queue_frames: int = 64
     """Frames that may wait for fusion; a live camera never waits for more room."""
     live: bool = False
-    """A camera (drop the oldest waiting work when behind) rather than a file (wait for the chain)."""
+    """A camera (drop the oldest waiting work when behind, and perceive in a process of its own so that
+    fusion does not stall perception: ``pipeline.perception_process``) rather than a file (wait for the
+    chain)."""
     max_units: int | None = None
     """Stop after this many fused units (turns of a turntable)."""
     duration_s: float | None = None
@@ -221,6 +224,7 @@ class Runner:
         self._halt = threading.Event()
         self._errors: list[BaseException] = []
         self._pending: FusedUnit | None = None
+        self._detector: PerceptionProcess | None = None
         self._closed = False
         self._unit_ready = threading.Condition()
         self._lock = threading.Lock()
@@ -293,8 +297,9 @@ class Runner:
                     return
                 started = time.perf_counter()
                 cloud = unit.cloud
-                result = transform_result(detect_points(self.model, cloud.points, clustering), cloud.T_world_bed,
-                                          "world")
+                found = (self._detector.detect(cloud.points, clustering) if self._detector is not None
+                         else detect_points(self.model, cloud.points, clustering))
+                result = transform_result(found, cloud.T_world_bed, "world")
                 now = time.perf_counter()
                 detection = Detection(unit, result, result.caps.to_document("world"), now - started,
                                       now - unit.last_arrival)
@@ -329,6 +334,8 @@ class Runner:
         threads = torch.get_num_threads()
         if self.config.fusion.recorded is None:
             torch.set_num_threads(self.config.perception_threads or max(1, min(threads, (os.cpu_count() or 2) - 1)))
+            if self.config.live:
+                self._detector = PerceptionProcess(self.model, torch.get_num_threads())
         try:
             self.source.open()
             capture.start()
@@ -342,6 +349,8 @@ class Runner:
                 self._unit_ready.notify_all()
             capture.join(timeout=10)
             perceive.join()
+            if self._detector is not None:
+                self._detector.close()
             torch.set_num_threads(threads)
             try:
                 self.source.close()

@@ -59,6 +59,9 @@ def _checked_outputs(args: argparse.Namespace) -> tuple[Path | None, Path | None
 
 
 def run(args: argparse.Namespace) -> int:
+    from pipeline.process import let_idle_threads_sleep
+
+    let_idle_threads_sleep()  # before torch and Open3D load: the chain's stages share the cores
     from capture.mcap_io import RecordingError, graceful_stop
     from capture.source import SourceError
     from fusion.turntable import Rig

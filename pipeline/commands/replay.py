@@ -54,6 +54,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from pipeline.process import let_idle_threads_sleep
+
+    let_idle_threads_sleep()  # before torch and Open3D load: the chain's stages share the cores
     from capture.mcap_io import RecordingError, graceful_stop
     from pipeline.check import Tolerances
     from pipeline.flags import config_from_args

@@ -1,0 +1,88 @@
+"""Perception in a process of its own, for a chain that must keep up with a camera.
+
+Fusion's Open3D calls (bilateral filter, ICP) hold Python's interpreter lock while they run, so a
+perception thread beside them waits for the lock between its torch operations: on 2 cores the same
+turn took 0.61 s in a thread against 0.41 s in a process (0.35 s alone). A process costs its start
+(torch imported, the model sent over), which is why only live runs use one.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import signal
+import threading
+
+import numpy as np
+
+
+class PerceptionProcessError(RuntimeError):
+    """The perception process ended without answering."""
+
+
+def _serve(connection, model, threads: int) -> None:
+    """The child's loop: (points, clustering config) in, SceneResult (or the exception) out, until None."""
+    import torch
+
+    from perception.detect import detect_points
+    from pipeline.process import hand_back_freed_memory, reuse_freed_memory
+
+    reuse_freed_memory()
+    torch.set_num_threads(threads)
+    while True:
+        try:
+            request = connection.recv()
+        except EOFError:
+            return
+        if request is None:
+            return
+        points, clustering = request
+        try:
+            answer = (True, detect_points(model, points, clustering))
+        except Exception as error:  # noqa: BLE001 - raised again in the parent
+            answer = (False, error)
+        connection.send(answer)
+        del answer
+        hand_back_freed_memory()
+
+
+class PerceptionProcess:
+    """``detect_points`` run by a child process that holds its own copy of the model."""
+
+    def __init__(self, model, threads: int):
+        context = multiprocessing.get_context("spawn")  # fork would copy the parent's threads' locks
+        self._connection, child = context.Pipe()
+        self._process = context.Process(target=_serve, args=(child, model, threads), name="perception", daemon=True)
+        # the child starts with Ctrl-C ignored (an ignored signal stays ignored across exec): the
+        # parent alone handles it and then closes the child
+        in_main = threading.current_thread() is threading.main_thread()
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if in_main else None
+        try:
+            self._process.start()
+        finally:
+            if in_main:
+                signal.signal(signal.SIGINT, previous)
+        child.close()
+
+    def detect(self, points: np.ndarray, clustering):
+        """The caps in ``points`` (bed frame), as ``detect_points`` finds them."""
+        try:
+            self._connection.send((np.ascontiguousarray(points), clustering))
+            ok, value = self._connection.recv()
+        except (EOFError, BrokenPipeError, ConnectionResetError):
+            self._process.join(timeout=1)
+            raise PerceptionProcessError(f"the perception process ended (exit code {self._process.exitcode})") from None
+        if not ok:
+            raise value
+        return value
+
+    def close(self) -> None:
+        """Ask the child to end, and make sure it has."""
+        try:
+            self._connection.send(None)
+        except (BrokenPipeError, OSError):
+            pass
+        self._process.join(timeout=5)
+        if self._process.is_alive():
+            self._process.kill()
+            self._process.join()
+        self._connection.close()
