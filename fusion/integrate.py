@@ -206,9 +206,11 @@ _KEY_OFFSET = 1 << (_KEY_BITS - 1)
 
 class VoxelMerge:
     """Per-voxel sums of posed frames (position, normal, colour, count), one frame at a time: merge
-    mode's voxel merge done as frames arrive, so a unit's end has little left to add up. Every
-    ``FOLD`` frames the pending frames' sums are folded into a running total. A frame added at one pose
-    can be taken out again (``remove``, its sums subtracted) and added at a better one (refinement).
+    mode's voxel merge done as frames arrive, so a unit's end has little left to add up. A frame's
+    rows are kept as they are (at about one point per voxel a frame has little to add up within
+    itself) and every ``FOLD`` frames the pending frames are folded into a running total. A frame
+    added at one pose can be taken out again (``remove``, its rows subtracted) and added at a better
+    one (refinement).
     The means equal ``merge_back_projected``'s (a voxel's mean over every point that falls in it),
     on a grid anchored at the world origin."""
 
@@ -230,7 +232,7 @@ class VoxelMerge:
         columns = [points, view.normals @ pose[:3, :3].T.astype(np.float32), np.ones((len(points), 1), np.float32)]
         if self.with_color:
             columns.append(view.colors.astype(np.float32))
-        self._frames[key] = self._reduce([keys], [np.hstack(columns)])
+        self._frames[key] = (keys, np.hstack(columns))
         self._pending.append(key)
         if len(self._pending) >= self.FOLD:
             self._fold()
@@ -238,11 +240,11 @@ class VoxelMerge:
     def remove(self, key: int) -> None:
         if key not in self._frames:
             return
-        keys, sums = self._frames.pop(key)
+        keys, rows = self._frames.pop(key)
         if key in self._pending:
             self._pending.remove(key)
         else:
-            self._total = self._reduce([self._total[0], keys], [self._total[1], -sums])
+            self._total = self._reduce([self._total[0], keys], [self._total[1], -rows])
 
     def _fold(self) -> None:
         parts = [self._frames[key] for key in self._pending]

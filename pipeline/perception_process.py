@@ -3,7 +3,8 @@
 Fusion's Open3D calls (bilateral filter, ICP) hold Python's interpreter lock while they run, so a
 perception thread beside them waits for the lock between its torch operations: on 2 cores the same
 turn took 0.61 s in a thread against 0.41 s in a process (0.35 s alone). A process costs its start
-(torch imported, the model sent over), which is why only live runs use one.
+(torch imported, the model sent over: a few seconds, before the source starts), which is why
+only live runs use one.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ def _serve(connection, model, threads: int) -> None:
 
     reuse_freed_memory()
     torch.set_num_threads(threads)
+    connection.send(True)  # ready: what arrives from now on is answered at once
     while True:
         try:
             request = connection.recv()
@@ -62,6 +64,13 @@ class PerceptionProcess:
             if in_main:
                 signal.signal(signal.SIGINT, previous)
         child.close()
+        # a live source starts once perception is ready, so that no early unit waits for the start
+        try:
+            self._connection.recv()
+        except EOFError:
+            self._process.join(timeout=1)
+            raise PerceptionProcessError(f"the perception process did not start (exit code "
+                                         f"{self._process.exitcode})") from None
 
     def detect(self, points: np.ndarray, clustering):
         """The caps in ``points`` (bed frame), as ``detect_points`` finds them."""
