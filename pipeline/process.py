@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import functools
 import os
 
 # glibc's mallopt parameters (malloc.h)
@@ -16,6 +17,16 @@ HEAP_GROWTH_BYTES = 16 << 20
 """Extra room asked of the kernel whenever the heap grows, so that it grows in few steps."""
 
 
+@functools.cache
+def _libc_function(name: str):
+    """A function of the C library (None where it has none): looked up once, since finding the library
+    runs ``ldconfig`` and the runner trims after every unit."""
+    try:
+        return getattr(ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6"), name)
+    except (OSError, AttributeError):
+        return None
+
+
 def reuse_freed_memory() -> bool:
     """Make glibc's malloc keep freed memory for the next allocation instead of handing it back.
 
@@ -23,9 +34,8 @@ def reuse_freed_memory() -> bool:
     each afresh and unmaps it on free, so the kernel faults in and zeroes every page again: about 4-5 k
     page faults and 6-21 ms of system time per forward pass on a val50 bed. Returns False where the C
     library has no ``mallopt`` (not glibc), which changes nothing else."""
-    try:
-        mallopt = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt
-    except (OSError, AttributeError):
+    mallopt = _libc_function("mallopt")
+    if mallopt is None:
         return False
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
     return all(mallopt(option, value) == 1 for option, value in (
@@ -39,9 +49,8 @@ def hand_back_freed_memory() -> bool:
     memory ``reuse_freed_memory`` keeps for reuse fragments over thousands of frames: resident memory
     creeps up although nothing is held. Trimming once per fused unit keeps it flat for a page fault
     per reused page. Returns False where the C library has no ``malloc_trim`` (not glibc)."""
-    try:
-        trim = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
-    except (OSError, AttributeError):
+    trim = _libc_function("malloc_trim")
+    if trim is None:
         return False
     trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
     trim(0)

@@ -334,9 +334,9 @@ class Runner:
         threads = torch.get_num_threads()
         if self.config.fusion.recorded is None:
             torch.set_num_threads(self.config.perception_threads or max(1, min(threads, (os.cpu_count() or 2) - 1)))
-            if self.config.live:
-                self._detector = PerceptionProcess(self.model, torch.get_num_threads())
         try:
+            if self.config.live and self.config.fusion.recorded is None:  # inside: sinks close if it fails
+                self._detector = PerceptionProcess(self.model, torch.get_num_threads())
             self.source.open()
             capture.start()
             perceive.start()
