@@ -488,12 +488,13 @@ def turned_runs(points: np.ndarray, labels: Caps, detect_args: list[str], folder
     pivot = points.mean(0)
     for angle in TURNS_DEG[1:count]:
         rotation = Rotation.from_euler("z", angle, degrees=True).as_matrix()
-        ply, out = folder / "turned.ply", folder / "turned.json"
+        ply, out = folder / f"turned-{angle:g}.ply", folder / f"turned-{angle:g}.json"
         turned = (points - pivot) @ rotation.T + pivot
         o3d.io.write_point_cloud(str(ply), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(turned)))
         done = subprocess.run([sys.executable, "-m", "pipeline.cli", "detect", str(ply), "--out", str(out),
                                *detect_args], cwd=REPO, capture_output=True, text=True)
         if done.returncode != 0:
+            sys.stderr.write(done.stdout + done.stderr)
             raise SystemExit(f"detect on the cloud turned by {angle:g} deg exited with {done.returncode}")
         preds = read_caps(json.loads(out.read_text()))
         back = dataclasses.replace(preds, centers=(preds.centers - pivot) @ rotation + pivot, axes=preds.axes @ rotation)

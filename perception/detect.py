@@ -13,7 +13,7 @@ from common.geometry import cell_lookup, transform_points, voxel_representatives
 from perception.cap import Caps
 from perception.instances import ClusterConfig, cluster
 from perception.model import LENGTH_UNIT, MushroomNet, inference_model, voxel_features
-from perception.pose import fit_caps
+from perception.pose import RADIUS_MODES, fit_caps, with_rim_radii
 from perception.sparse import COORD_MAX, SparseTensor, voxelize
 
 
@@ -188,9 +188,14 @@ def merge_pieces(labels: np.ndarray, fit: Caps, ratio: float) -> np.ndarray | No
 
 
 def find_caps(prediction: VoxelPrediction, voxel: float, cluster_config: ClusterConfig = ClusterConfig(),
-              height: str = "free", axis: str = "surface", timings: dict | None = None) -> tuple[np.ndarray, Caps]:
+              height: str = "free", axis: str = "surface", timings: dict | None = None,
+              radius: str = "rim") -> tuple[np.ndarray, Caps]:
     """Voxel labels and fitted caps from the network's encoding: clusters of collapsed points, their
-    poses, and pieces of one cap merged (``ClusterConfig.merge_ratio``, at most three rounds)."""
+    poses, pieces of one cap merged (``ClusterConfig.merge_ratio``, at most three rounds), and each
+    cap's radius measured on its voxels (``with_rim_radii``; ``radius="fit"`` keeps the ellipsoid's s,
+    as the paper does)."""
+    if radius not in RADIUS_MODES:
+        raise ValueError(f"unknown radius mode {radius!r}; choose one of {RADIUS_MODES}")
     timings = {} if timings is None else timings
     start = time.perf_counter()
     labels = cluster(prediction.centroids, prediction.centers, prediction.existence, voxel, cluster_config)
@@ -204,6 +209,8 @@ def find_caps(prediction: VoxelPrediction, voxel: float, cluster_config: Cluster
             break
         labels = merged
         fit = fit_caps(*arguments, labels, height, axis)
+    if radius == "rim":
+        fit = with_rim_radii(fit, prediction.centroids, labels)
     timings["pose"] = 1000 * (time.perf_counter() - start)
     return labels, fit
 
@@ -251,7 +258,7 @@ def log_rerun(rec, result: SceneResult, points: np.ndarray, entity: str = "world
 
 def evaluate_on_scenes(model: MushroomNet, scenes, methods=("meanshift", "dbscan"), height: str = "free",
                        axis: str = "surface", progress: bool = False, zoom: float | None = None,
-                       use_ray: bool = False, ray_address: str | None = None) -> dict:
+                       use_ray: bool = False, ray_address: str | None = None, radius: str = "rim") -> dict:
     """The paper's metrics of ``model`` on synthetic scenes, per clustering method (one network pass
     per scene, read at ``zoom``, by default the model's own); with ``use_ray`` each scene is read by a
     Ray task (the same caps: a scene's reading depends on the scene and the model alone)."""
@@ -260,7 +267,7 @@ def evaluate_on_scenes(model: MushroomNet, scenes, methods=("meanshift", "dbscan
     from perception.evaluate import evaluate
 
     scenes = list(scenes)
-    items = [(scene, methods, height, axis, zoom) for scene in scenes]
+    items = [(scene, methods, height, axis, zoom, radius) for scene in scenes]
     if use_ray:
         from common.distributed import ray_map
 
@@ -277,12 +284,13 @@ def evaluate_on_scenes(model: MushroomNet, scenes, methods=("meanshift", "dbscan
     return {method: evaluate(preds[method], gts) for method in methods}
 
 
-def scene_caps(model: MushroomNet, scene, methods, height: str, axis: str, zoom: float | None):
+def scene_caps(model: MushroomNet, scene, methods, height: str, axis: str, zoom: float | None, radius: str = "rim"):
     """A synthetic scene's caps per clustering method, and its visible ground truth."""
     prediction = predict(model, scene.points, zoom=zoom)
     found = {}
     for method in methods:
-        found[method] = find_caps(prediction, model.config.voxel, ClusterConfig(method=method), height, axis)[1]
+        found[method] = find_caps(prediction, model.config.voxel, ClusterConfig(method=method), height, axis,
+                                  radius=radius)[1]
     return found, visible_truth(scene)
 
 

@@ -78,7 +78,8 @@ def ransac_rows(model, scenes, truth: list[Caps], progress: bool = False) -> lis
 
 
 def encoding_rows(models: dict, scenes, truth: list[Caps], progress: bool = False) -> list[Row]:
-    """Table 2: each encoding's network (``models[encoding]``) with MeanShift and the encoding's own axis."""
+    """Table 2: each encoding's network (``models[encoding]``) with MeanShift and the encoding's own axis
+    and size, as the paper poses caps."""
     from tqdm import tqdm
 
     from perception.detect import find_caps, predict
@@ -89,7 +90,8 @@ def encoding_rows(models: dict, scenes, truth: list[Caps], progress: bool = Fals
         found, seconds = [], []
         for scene in tqdm(scenes, desc=encoding, unit="bed", disable=not progress, leave=False):
             start = time.perf_counter()
-            _, fit = find_caps(predict(model, scene.points), model.config.voxel, ClusterConfig(), axis="encoding")
+            _, fit = find_caps(predict(model, scene.points), model.config.voxel, ClusterConfig(), axis="encoding",
+                                radius="fit")
             seconds.append(time.perf_counter() - start)
             found.append(fit)
         rows.append(_row(encoding, found, seconds, truth))

@@ -311,6 +311,21 @@ def test_eval_prints_the_table_and_writes_json(tmp_path, weights, monkeypatch):
     assert refused.returncode == 2 and "at most 2.0" in refused.stderr and "Traceback" not in refused.stderr
 
 
+def test_eval_radius_fit_sizes_the_same_caps_by_the_ellipsoid(tmp_path, monkeypatch):
+    """The shipped model on two val50 beds: ``--radius fit`` finds the same caps with the same axes and
+    gives other sizes."""
+    monkeypatch.setenv("MUSHROOM_POSE_CACHE", str(tmp_path / "cache"))
+    reports = {}
+    for radius in ("rim", "fit"):
+        result = run("eval", "--set", "val50", "--scenes", "2", "--json", tmp_path / f"{radius}.json",
+                     "--radius", radius, "--quiet")
+        assert result.returncode == 0, result.stderr
+        reports[radius] = json.loads((tmp_path / f"{radius}.json").read_text())["val50"]["meanshift"]
+    rim, fit = reports["rim"], reports["fit"]
+    assert rim["n_pred"] == fit["n_pred"] and rim["angle_deg"] == pytest.approx(fit["angle_deg"], abs=1e-9)
+    assert rim["scale_err"] != pytest.approx(fit["scale_err"], abs=1e-4)
+
+
 def test_detect_warns_outside_the_operating_range(tmp_path, weights):
     """A bed sampled every 5 mm is sparser than the model holds to; the same bed at 3 mm is not. The
     tiny model finds no caps on either, which detect also says."""

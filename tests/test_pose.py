@@ -201,3 +201,79 @@ def test_soil_voxels_a_few_millimetres_off_the_dome_do_not_tilt_a_small_cap(monk
     without_cut = axis_errors_deg(fit_caps(*args), truth)
     assert np.median(with_cut) < 3.0
     assert np.median(with_cut) < 0.5 * np.median(without_cut)
+
+
+def shallow_dome(center, rotation, rim, sphere_radius, n, rng):
+    """Points spread evenly over a spherical cap of rim radius ``rim`` cut from a sphere of
+    ``sphere_radius`` (a real cap's shallow dome), its rim plane through ``center``, turned by
+    ``rotation``; and the height of the dome."""
+    cos_max = np.sqrt(1.0 - (rim / sphere_radius) ** 2)
+    cos_polar = rng.uniform(cos_max, 1.0, n)  # even in cos: even over the sphere's area
+    sin_polar, azimuth = np.sqrt(1.0 - cos_polar**2), rng.uniform(0.0, 2 * np.pi, n)
+    local = sphere_radius * np.stack([sin_polar * np.cos(azimuth), sin_polar * np.sin(azimuth),
+                                      cos_polar - cos_max], 1)
+    return local @ rotation.T + center, sphere_radius * (1.0 - cos_max)
+
+
+def test_rim_radius_is_the_quantile_of_distances_from_the_axis_on_shallow_domes():
+    """On a spherical cap the fraction of the area within distance x of the axis is
+    (1 - cos t(x)) / (1 - cos t_max) with sin t(x) = x / R, so its q-quantile is R sin t_q with
+    cos t_q = 1 - q (1 - cos t_max); two tilted domes, shuffled together, each get their own."""
+    rng = np.random.default_rng(5)
+    domes = [(np.array([0.05, -0.02, 0.01]), cap_rotation(0.4, -0.2), 0.028, 0.042),
+             (np.array([-0.04, 0.03, 0.0]), cap_rotation(-0.1, 0.5), 0.012, 0.030)]
+    points, labels, heights = [], [], []
+    for k, (center, rotation, rim, sphere_radius) in enumerate(domes):
+        cloud, height = shallow_dome(center, rotation, rim, sphere_radius, 20000, rng)
+        points.append(cloud)
+        labels.append(np.full(len(cloud), k))
+        heights.append(height)
+    points, labels = np.vstack(points), np.concatenate(labels)
+    order = rng.permutation(len(points))
+    points, labels = np.vstack([points[order], [[9.0, 9.0, 9.0]]]), np.append(labels[order], -1)
+    caps = pose.Caps(np.array([d[0] for d in domes]), np.array([d[1] for d in domes]),
+                     np.array([[d[2], d[2], h] for d, h in zip(domes, heights)]))
+    quantile = pose.RIM_QUANTILE
+    for k, (_, _, rim, sphere_radius) in enumerate(domes):
+        cos_max = np.sqrt(1.0 - (rim / sphere_radius) ** 2)
+        expected = sphere_radius * np.sqrt(1.0 - (1.0 - quantile * (1.0 - cos_max)) ** 2)
+        # 20000 samples: the quantile's sampling error is about 0.2 % here
+        assert pose.rim_radii(points, labels, caps)[k] == pytest.approx(expected, rel=0.01)
+    measured = pose.with_rim_radii(caps, points, labels)
+    np.testing.assert_allclose(measured.radii, pose.rim_radii(points, labels, caps))
+    np.testing.assert_array_equal(measured.scales[:, 2], caps.scales[:, 2])
+    np.testing.assert_array_equal(measured.centers, caps.centers)
+
+
+def test_rim_radius_keeps_the_fit_where_a_cap_has_too_few_points():
+    caps = pose.Caps(np.zeros((2, 3)), np.stack([np.eye(3)] * 2), np.array([[0.02, 0.02, 0.013]] * 2))
+    points = np.array([[0.01, 0.0, 0.0]] * 3 + [[0.015, 0.0, 0.0]] * pose.SURFACE_MIN_POINTS)
+    labels = np.array([0] * 3 + [1] * pose.SURFACE_MIN_POINTS)
+    measured = pose.with_rim_radii(caps, points, labels)
+    np.testing.assert_allclose(measured.radii, [0.02, 0.015])
+
+
+def test_find_caps_reports_the_rim_radius_and_with_fit_the_ellipsoids():
+    """Three ideal caps through the whole instance step: with ``radius="fit"`` the ellipsoid's s comes
+    back exactly; by default the radius is the quantile of the points' distances from the axis, which
+    for ``ideal_cap`` (elevation e even in [0.05, pi / 2], distance s cos e) is s cos e at the
+    (1 - quantile) point of that range."""
+    from perception.detect import VoxelPrediction, find_caps
+
+    caps = [((0.0, 0.0, 0.01), 0.4, -0.3, 0.02), ((0.1, 0.05, 0.0), -0.6, 0.1, 0.012),
+            ((-0.08, 0.1, 0.02), 0.0, 0.7, 0.028)]
+    parts = [ideal_cap(np.array(c), tx, ty, 0.0, s, CAP_HEIGHT_RATIO * s, n=4000, seed=i)
+             for i, (c, tx, ty, s) in enumerate(caps)]
+    points = np.concatenate([p[0] for p in parts])
+    prediction = VoxelPrediction(points, np.ones(len(points)), np.concatenate([p[1] for p in parts]),
+                                 np.concatenate([p[2] for p in parts]), np.arange(len(points)))
+    _, fitted = find_caps(prediction, 0.0045, radius="fit")
+    _, measured = find_caps(prediction, 0.0045)
+    order = np.argsort(fitted.radii)
+    true_radii = np.sort([s for *_, s in caps])
+    np.testing.assert_allclose(fitted.radii[order], true_radii, rtol=1e-6)
+    elevation = 0.05 + (1.0 - pose.RIM_QUANTILE) * (np.pi / 2 - 0.05)
+    np.testing.assert_allclose(measured.radii[order], true_radii * np.cos(elevation), rtol=0.01)
+    np.testing.assert_array_equal(measured.scales[:, 2], fitted.scales[:, 2])
+    with pytest.raises(ValueError, match="radius mode"):
+        find_caps(prediction, 0.0045, radius="widest")

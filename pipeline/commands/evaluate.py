@@ -27,6 +27,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--axis", choices=["surface", "encoding"], default="surface",
                         help="cap axis: the encoding's refined by the cap's surface (default), or the "
                         "encoding's alone, as in the paper")
+    parser.add_argument("--radius", choices=["rim", "fit"], default="rim",
+                        help="cap radius: measured on the cap's own points (default), or the fitted "
+                        "ellipsoid's, as in the paper")
     parser.add_argument("--spacing", type=parse_spacing,
                         help=f"the same beds at this point spacing in metres (default {SPACING_HELP}; "
                              "e.g. 0.0051 for 5.1 mm sets)")
@@ -84,7 +87,8 @@ def run(args: argparse.Namespace) -> int:
                                  spacing=args.spacing)
         except ValueError as error:
             raise CliError(str(error)) from None
-        results = evaluate_on_scenes(model, scenes, height=args.height, axis=args.axis, progress=not args.quiet,
+        results = evaluate_on_scenes(model, scenes, height=args.height, axis=args.axis, radius=args.radius,
+                                     progress=not args.quiet,
                                      zoom=zoom, **ray_options(args))
         label = name + (f" at {1000 * args.spacing:g} mm spacing" if args.spacing else "") + \
             f", read at {read_at}" + \
