@@ -2,13 +2,17 @@
 
 Layout of a recording, per sensor ``<id>`` (all messages of one frame share log_time = its timestamp_ns):
 
-- ``/camera/<id>/depth``        foxglove.RawImage "16UC1", the raw little-endian uint16 depth units
+- ``/camera/<id>/depth``        ROS 2 sensor_msgs/msg/Image "16UC1" (CDR), the raw little-endian uint16
+                                depth units
 - ``/camera/<id>/color``        foxglove.RawImage "rgb8", when the frame has colour
 - ``/camera/<id>/calibration``  foxglove.CameraCalibration (K, P, plumb_bob with zero D)
 - ``/tf``                       foxglove.FrameTransforms world -> camera/<id>, when the pose is known
 - ``/camera/<id>/meta``         JSON ``{"timestamp_ns", "depth_scale", "turntable_angle", "T_world_camera",
                                 "has_color"}``
 
+Depth is a ROS 2 Image, not a foxglove.RawImage, because viewers show that schema's 16UC1 as depth:
+Rerun's MCAP import makes it a DepthImage (a foxglove.RawImage becomes a grey image), and Foxglove reads
+ROS 2 messages natively. Recordings whose depth is a foxglove.RawImage are read as well.
 The foxglove schemas have no field for a depth scale or a turntable angle, and a pose stored as a
 quaternion does not come back bit-exact, so the meta channel carries what replay needs exactly
 (JSON floats round-trip exactly); /tf is there for viewers. The meta message also says whether a
@@ -22,6 +26,7 @@ import logging
 import os
 import re
 import signal
+import struct
 import sys
 import threading
 import time
@@ -44,12 +49,31 @@ from mcap.reader import SeekingReader
 from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap_protobuf.decoder import DecoderFactory
+from mcap_ros2.decoder import DecoderFactory as Ros2DecoderFactory
 
 from capture.frames import CameraIntrinsics, DepthFrame
 from capture.source import Source, SourceError
 from common.files import atomic_path
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
+ROS2_IMAGE_SCHEMA = foxglove.Schema(name="sensor_msgs/msg/Image", encoding="ros2msg", data=b"""\
+std_msgs/Header header
+uint32 height
+uint32 width
+string encoding
+uint8 is_bigendian
+uint32 step
+uint8[] data
+================================================================================
+MSG: std_msgs/Header
+builtin_interfaces/Time stamp
+string frame_id
+================================================================================
+MSG: builtin_interfaces/Time
+int32 sec
+uint32 nanosec
+""")
+_CDR_LITTLE_ENDIAN = b"\x00\x01\x00\x00"
 _CAMERA_TOPIC = re.compile(r"^/camera/(?P<sensor>.+)/(?P<kind>depth|color|calibration|meta)$")
 _COMPRESSION = {"zstd": MCAPCompression.Zstd, "lz4": MCAPCompression.Lz4, "none": None, None: None}
 _META_SCHEMA = {
@@ -73,6 +97,44 @@ class TruncatedRecordingWarning(UserWarning):
 
 def _timestamp(ns: int) -> Timestamp:
     return Timestamp(ns // 1_000_000_000, ns % 1_000_000_000)
+
+
+def ros2_image(timestamp_ns: int, frame_id: str, pixels: np.ndarray, encoding: str) -> bytes:
+    """One sensor_msgs/msg/Image (``ROS2_IMAGE_SCHEMA``) in little-endian CDR: each field aligned to
+    its size from the end of the 4-byte encapsulation header, strings as a uint32 length (with the
+    terminating NUL) and the bytes, ``data`` as a uint32 length and the rows. One fixed layout, so it
+    is written here; mcap-ros2-support's decoder reads it back (tested)."""
+    pixels = np.ascontiguousarray(pixels)
+    body = bytearray()
+
+    def uint32(value: int) -> None:
+        body.extend(b"\0" * (-len(body) % 4))
+        body.extend(struct.pack("<I", value))
+
+    def text(value: str) -> None:
+        data = value.encode() + b"\0"
+        uint32(len(data))
+        body.extend(data)
+
+    seconds, nanoseconds = divmod(int(timestamp_ns), 10**9)
+    body.extend(struct.pack("<iI", seconds, nanoseconds))
+    text(frame_id)
+    uint32(pixels.shape[0])
+    uint32(pixels.shape[1])
+    text(encoding)
+    body.append(0)  # is_bigendian
+    uint32(pixels.strides[0])
+    uint32(pixels.nbytes)
+    return _CDR_LITTLE_ENDIAN + bytes(body) + pixels.tobytes()
+
+
+def message_decoder(schema: Schema | None, channel: Channel) -> Callable[[bytes], Any] | None:
+    """The decoder of a channel's messages: foxglove protobuf or ROS 2 CDR; None for other encodings."""
+    for factory in (DecoderFactory(), Ros2DecoderFactory()):
+        decoder = factory.decoder_for(channel.message_encoding, schema)
+        if decoder is not None:
+            return decoder
+    return None
 
 
 def _jsonable(value: Any) -> Any:
@@ -237,9 +299,8 @@ class McapRecorder:
             raise ValueError(f"colour must be HxWx3 uint8 (rgb8), got {frame.color.dtype} {frame.color.shape}")
         k, stamp, frame_id = frame.intrinsics, _timestamp(t), f"camera/{sensor}"
         prefix = f"/camera/{sensor}"
-        self._channel(f"{prefix}/depth", RawImageChannel).log(RawImage(
-            timestamp=stamp, frame_id=frame_id, width=k.width, height=k.height, encoding="16UC1",
-            step=k.width * 2, data=np.ascontiguousarray(frame.depth, "<u2").tobytes()), log_time=t)
+        self._channel(f"{prefix}/depth", foxglove.Channel, message_encoding="cdr", schema=ROS2_IMAGE_SCHEMA).log(
+            ros2_image(t, frame_id, np.asarray(frame.depth, "<u2"), "16UC1"), log_time=t)
         if frame.color is not None:
             self._channel(f"{prefix}/color", RawImageChannel).log(RawImage(
                 timestamp=stamp, frame_id=frame_id, width=k.width, height=k.height, encoding="rgb8",
@@ -435,7 +496,7 @@ class _ExactReads:
 
 
 def _image(message: Any, dtype: str, channels: int) -> np.ndarray:
-    """The pixels of a foxglove.RawImage as an owned array (H, W) or (H, W, channels)."""
+    """The pixels of a foxglove.RawImage or a ROS 2 Image as an owned array (H, W) or (H, W, channels)."""
     width, height, step = message.width, message.height, message.step
     row_bytes = width * channels * np.dtype(dtype).itemsize
     rows = np.frombuffer(message.data, np.uint8, count=height * step).reshape(height, step)[:, :row_bytes]
@@ -541,7 +602,6 @@ class McapSource(Source):
 
     def _assemble(self, messages: Iterator[tuple[Schema | None, Channel, Message]]) -> Iterator[DepthFrame]:
         """Group each frame's messages (same sensor, same log_time) and yield it once complete."""
-        factory = DecoderFactory()
         decoders: dict[int, Callable[[bytes], Any]] = {}
         pending: dict[tuple[str, int], dict[str, Any]] = {}
         for schema, channel, message in messages:
@@ -551,10 +611,10 @@ class McapSource(Source):
                 value = json.loads(message.data)
             else:
                 if channel.id not in decoders:
-                    decoder = factory.decoder_for(channel.message_encoding, schema)
+                    decoder = message_decoder(schema, channel)
                     if decoder is None:
                         raise SourceError(f"{self.path}: {channel.topic} is {channel.message_encoding}, "
-                                          f"not foxglove protobuf")
+                                          f"neither foxglove protobuf nor ROS 2 CDR")
                     decoders[channel.id] = decoder
                 value = decoders[channel.id](message.data)
             key = (sensor, message.log_time)
@@ -618,15 +678,16 @@ def _decoded(path: Path, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
     try:
         with open(path, "rb") as file:
             reader = make_reader(file)
-            factory, decoders = DecoderFactory(), {}
+            decoders = {}
             for schema, channel, message in reader.iter_messages(topics=topics, log_time_order=True):
                 if channel.message_encoding == "json":
                     yield channel.topic, message.log_time, json.loads(message.data)
                     continue
                 if channel.id not in decoders:
-                    decoders[channel.id] = factory.decoder_for(channel.message_encoding, schema)
+                    decoders[channel.id] = message_decoder(schema, channel)
                     if decoders[channel.id] is None:
-                        raise SourceError(f"{path}: {channel.topic} is {channel.message_encoding}, not foxglove protobuf")
+                        raise SourceError(f"{path}: {channel.topic} is {channel.message_encoding}, "
+                                          f"neither foxglove protobuf nor ROS 2 CDR")
                 yield channel.topic, message.log_time, decoders[channel.id](message.data)
     except (McapError, ValueError, EOFError, OSError, json.JSONDecodeError) as error:
         raise SourceError(f"{path} is not a readable MCAP file, or is cut short ({type(error).__name__})") from None

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
+from mcap_ros2.decoder import DecoderFactory as Ros2DecoderFactory
 from scipy.spatial.transform import Rotation
 
 from capture.frames import CameraIntrinsics, DepthFrame
@@ -122,13 +123,13 @@ def test_plain_mcap_reader_sees_foxglove_topics_and_schemas(tmp_path, frames):
         recorder.write_json("/perception/mushrooms_json", {"mushrooms": [{"id": 0, "center": np.zeros(3)}]}, t)
         recorder.write_point_cloud("/fusion/cloud", np.arange(12, dtype=np.float32).reshape(4, 3), t)
     with open(path, "rb") as file:
-        reader = make_reader(file, decoder_factories=[DecoderFactory()])
+        reader = make_reader(file, decoder_factories=[DecoderFactory(), Ros2DecoderFactory()])
         summary = reader.get_summary()
         channels = {c.topic: c for c in summary.channels.values()}
         schema = {topic: summary.schemas[c.schema_id].name for topic, c in channels.items()}
         counts = {topic: summary.statistics.channel_message_counts[c.id] for topic, c in channels.items()}
         assert {topic: schema[topic] for topic in channels if not topic.endswith(("/meta", "_json"))} == {
-            "/camera/a/depth": "foxglove.RawImage", "/camera/b/depth": "foxglove.RawImage",
+            "/camera/a/depth": "sensor_msgs/msg/Image", "/camera/b/depth": "sensor_msgs/msg/Image",
             "/camera/b/color": "foxglove.RawImage", "/camera/a/calibration": "foxglove.CameraCalibration",
             "/camera/b/calibration": "foxglove.CameraCalibration", "/tf": "foxglove.FrameTransforms",
             "/fusion/cloud": "foxglove.PointCloud"}
@@ -149,13 +150,16 @@ def test_plain_mcap_reader_sees_foxglove_topics_and_schemas(tmp_path, frames):
                                            frame.T_world_camera[:3, :3], atol=1e-12)
                 t = transform.translation
                 assert [t.x, t.y, t.z] == frame.T_world_camera[:3, 3].tolist()
+            elif channel.topic.endswith("/depth"):  # a ROS 2 Image, read by mcap-ros2-support
+                frame = by_time[(decoded.header.frame_id, message.log_time)]
+                assert decoded.header.stamp.sec * 10**9 + decoded.header.stamp.nanosec == message.log_time
+                assert (decoded.encoding, decoded.step, decoded.width, decoded.height) == ("16UC1", 320, 160, 120)
+                assert decoded.is_bigendian == 0
+                assert np.array_equal(np.frombuffer(decoded.data, "<u2").reshape(120, 160), frame.depth)
             else:
                 frame = by_time[(decoded.frame_id, message.log_time)]
                 assert decoded.timestamp.seconds * 10**9 + decoded.timestamp.nanos == message.log_time
-                if channel.topic.endswith("/depth"):
-                    assert (decoded.encoding, decoded.step, decoded.width) == ("16UC1", 320, 160)
-                    assert np.array_equal(np.frombuffer(decoded.data, "<u2").reshape(120, 160), frame.depth)
-                elif channel.topic.endswith("/color"):
+                if channel.topic.endswith("/color"):
                     assert (decoded.encoding, decoded.step) == ("rgb8", 480)
                 else:
                     assert list(decoded.K) == INTRINSICS.matrix.ravel().tolist()
@@ -418,7 +422,7 @@ def test_rerun_cli_converts_a_recording_to_rrd(tmp_path, frames):
     rerun = _rerun_mcap_convert()
     if rerun is None:
         pytest.skip("the rerun CLI (rerun-sdk wheel) with `rerun mcap convert` is not installed")
-    from helpers import rrd_entity_rows
+    from helpers import rrd_entity_rows, rrd_values
 
     path, rrd = tmp_path / "view.mcap", tmp_path / "view.rrd"
     record(ListSource(frames), path, progress=False)
@@ -426,3 +430,34 @@ def test_rerun_cli_converts_a_recording_to_rrd(tmp_path, frames):
                    check=True, capture_output=True, timeout=120)
     rows = rrd_entity_rows(rrd)
     assert rows["/camera/a/depth"] >= 4 and rows["/camera/b/color"] >= 3 and rows["/tf"] >= 6
+    # depth comes in as a depth image (drawn with a colour map), each with the frame's own pixels
+    depths = rrd_values(rrd, "/camera/a/depth", "DepthImage:buffer")
+    expected = [f.depth for f in frames if f.sensor_id == "a"]
+    assert len(depths) == len(expected)
+    for (_, buffer), depth in zip(depths, expected):
+        assert np.array_equal(np.asarray(buffer[0], np.uint8).view("<u2").reshape(depth.shape), depth)
+    assert len(rrd_values(rrd, "/camera/b/color", "Image:buffer")) == 3
+
+
+def test_a_session_whose_depth_is_a_foxglove_raw_image_is_read(tmp_path):
+    """Sessions may carry depth as a foxglove.RawImage (16UC1), as every channel but depth is: the
+    reader takes either schema."""
+    import foxglove
+    from foxglove.channels import CameraCalibrationChannel, RawImageChannel
+    from foxglove.messages import CameraCalibration, RawImage, Timestamp
+
+    depth = np.arange(120 * 160, dtype=np.uint16).reshape(120, 160)
+    path, t = tmp_path / "raw-image.mcap", 1_700_000_000_123_456_789
+    stamp = Timestamp(sec=t // 10**9, nsec=t % 10**9)
+    writer = foxglove.open_mcap(str(path))
+    RawImageChannel("/camera/x/depth").log(RawImage(timestamp=stamp, frame_id="camera/x", width=160, height=120,
+                                                    encoding="16UC1", step=320, data=depth.tobytes()), log_time=t)
+    CameraCalibrationChannel("/camera/x/calibration").log(CameraCalibration(
+        timestamp=stamp, frame_id="camera/x", width=160, height=120,
+        K=[float(v) for v in INTRINSICS.matrix.ravel()]), log_time=t)
+    meta = {"timestamp_ns": t, "depth_scale": 1e-4, "turntable_angle": None, "T_world_camera": None,
+            "has_color": False}
+    foxglove.Channel("/camera/x/meta", schema={"type": "object"}).log(json.dumps(meta).encode(), log_time=t)
+    writer.close()
+    (frame,) = list(McapSource(path))
+    assert np.array_equal(frame.depth, depth) and frame.timestamp_ns == t and frame.intrinsics == INTRINSICS
