@@ -19,7 +19,6 @@ import argparse  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
-import open3d as o3d  # noqa: E402
 import torch  # noqa: E402
 
 from capture.source import Source  # noqa: E402
@@ -39,14 +38,8 @@ SETTINGS = {"1 view": (0,), "2 cameras (opposite sides)": (0, 9), "4 views": (0,
 
 def visible_caps(bed, world_points: np.ndarray) -> np.ndarray:
     """Indices of the caps with at least MIN_CAP_POINTS fused points on their cap surface."""
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(bed.vertices.astype(np.float32)),
-                        o3d.core.Tensor(bed.triangles.astype(np.uint32)))
-    closest = scene.compute_closest_points(o3d.core.Tensor(np.ascontiguousarray(world_points, np.float32)))
-    triangle = closest["primitive_ids"].numpy().astype(np.int64)
-    distance = np.linalg.norm(closest["points"].numpy() - world_points, axis=1)
-    on_cap = (distance <= ON_SURFACE) & bed.triangle_is_cap[triangle]
-    counts = np.bincount(bed.triangle_instance[triangle][on_cap], minlength=len(bed.centers))
+    cap = bed.cap_of_points(world_points, ON_SURFACE)
+    counts = np.bincount(cap[cap >= 0], minlength=len(bed.centers))
     return np.flatnonzero(counts >= MIN_CAP_POINTS)
 
 

@@ -201,3 +201,18 @@ def test_a_corrupt_cached_scene_is_made_again(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("MUSHROOM_POSE_CACHE", str(broken))
     with pytest.raises(ValueError, match="cannot write the tiny cache"):
         load_preset("tiny", progress=False)
+
+
+def test_cap_of_points_names_the_cap_a_point_lies_on():
+    """A point on a cap triangle belongs to that triangle's mushroom; a point on soil, on a stem or
+    clear of the bed belongs to none."""
+    rng = np.random.default_rng(11)
+    bed = build_bed(rng, SceneConfig(mushrooms=(12, 12)))
+    centroids = bed.vertices[bed.triangles].mean(axis=1)
+    cap = np.flatnonzero(bed.triangle_is_cap)
+    off_cap = np.flatnonzero(~bed.triangle_is_cap)
+    cap, off_cap = rng.choice(cap, 300, replace=False), rng.choice(off_cap, 300, replace=False)
+    np.testing.assert_array_equal(bed.cap_of_points(centroids[cap], 0.002), bed.triangle_instance[cap])
+    assert (bed.cap_of_points(centroids[off_cap], 0.002) == -1).all()
+    above = centroids[cap] + [0.0, 0.0, 0.2]  # 20 cm over the tallest cap
+    assert (bed.cap_of_points(above, 0.002) == -1).all()

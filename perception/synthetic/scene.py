@@ -85,6 +85,19 @@ class BedMeshes:
     """(K, 3) true cap semi-axes (s_x, s_y, s_z) in metres."""
     terrain: str
 
+    def cap_of_points(self, points: np.ndarray, within: float) -> np.ndarray:
+        """Each point's mushroom (N,) when it lies within ``within`` metres of that mushroom's cap
+        surface, -1 otherwise: which points of a cloud made from this bed show a cap."""
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.core.Tensor(self.vertices.astype(np.float32)),
+                            o3d.core.Tensor(self.triangles.astype(np.uint32)))
+        points = np.ascontiguousarray(points, np.float32)
+        closest = scene.compute_closest_points(o3d.core.Tensor(points))
+        triangle = closest["primitive_ids"].numpy().astype(np.int64)
+        distance = np.linalg.norm(closest["points"].numpy() - points, axis=1)
+        on_cap = (distance <= within) & self.triangle_is_cap[triangle]
+        return np.where(on_cap, self.triangle_instance[triangle], -1)
+
 
 @dataclass(frozen=True)
 class SyntheticScene:
