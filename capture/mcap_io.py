@@ -361,18 +361,22 @@ class McapRecorder:
         self._messages += 1
         self._written(len(data))
 
-    def write_transform(self, parent: str, child: str, T_parent_child: np.ndarray, log_time_ns: int) -> None:
-        """Log ``T_parent_child`` on /tf (for viewers; the pose is also kept exact where replay needs it)."""
-        self._log_transform(parent, child, T_parent_child, log_time_ns)
+    def write_transform(self, parent: str, child: str, T_parent_child: np.ndarray, log_time_ns: int,
+                        topic: str = "/tf") -> None:
+        """Log ``T_parent_child`` on ``topic`` (for viewers; the pose is also kept exact where replay needs
+        it). A transform written later than the frames around its log time goes on a topic of its own,
+        so that every channel's messages stay in log-time order."""
+        self._log_transform(parent, child, T_parent_child, log_time_ns, topic)
         self._messages += 1
         self._written(0)
 
-    def _log_transform(self, parent: str, child: str, T_parent_child: np.ndarray, log_time_ns: int) -> None:
+    def _log_transform(self, parent: str, child: str, T_parent_child: np.ndarray, log_time_ns: int,
+                       topic: str = "/tf") -> None:
         from scipy.spatial.transform import Rotation
 
         T = np.asarray(T_parent_child, np.float64)
         x, y, z, w = Rotation.from_matrix(T[:3, :3]).as_quat()
-        self._channel("/tf", FrameTransformsChannel).log(FrameTransforms(transforms=[FrameTransform(
+        self._channel(topic, FrameTransformsChannel).log(FrameTransforms(transforms=[FrameTransform(
             timestamp=_timestamp(int(log_time_ns)), parent_frame_id=parent, child_frame_id=child,
             translation=Vector3(x=T[0, 3], y=T[1, 3], z=T[2, 3]), rotation=Quaternion(x=x, y=y, z=z, w=w))]),
             log_time=int(log_time_ns))
@@ -665,6 +669,9 @@ CAPS_TOPIC = "/perception/mushrooms"
 CAP_OUTLINES_TOPIC = "/perception/cap_outlines"
 """The caps as wire domes in a point cloud, for viewers that draw no SceneUpdate."""
 UNIT_TOPIC = "/fusion/unit"
+BED_TRANSFORM_TOPIC = "/fusion/tf"
+"""world -> bed of each fused cloud, for viewers: written when the unit is fused, after later frames'
+/tf messages, so on a topic of its own."""
 """JSON per fused cloud: its frames and its exact T_world_bed, so replay can start from fusion's output."""
 
 

@@ -85,11 +85,11 @@ class McapSink(Sink):
                 self.recorder.write(frame)
 
     def fused(self, unit: FusedUnit) -> None:
-        from capture.mcap_io import FUSED_CLOUD_TOPIC, UNIT_TOPIC
+        from capture.mcap_io import BED_TRANSFORM_TOPIC, FUSED_CLOUD_TOPIC, UNIT_TOPIC
 
         t = unit.last_frame_ns
         with self._lock:
-            self.recorder.write_transform("world", "bed", unit.cloud.T_world_bed, t)
+            self.recorder.write_transform("world", "bed", unit.cloud.T_world_bed, t, BED_TRANSFORM_TOPIC)
             self.recorder.write_point_cloud(FUSED_CLOUD_TOPIC, unit.cloud.world_points, t, "world",
                                             colors=unit.cloud.display_colors)
             self.recorder.write_json(UNIT_TOPIC, {"index": unit.index, "kind": unit.kind,

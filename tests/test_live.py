@@ -49,6 +49,16 @@ def test_live_virtual_turn_is_recorded_fused_detected_and_logged(tmp_path):
     assert documents[0][1]["mushrooms"] and documents[0][0] == frames[5].timestamp_ns
     rows = rrd_entity_rows(tmp_path / "s.rrd")
     assert rows["/world/camera/virtual/depth"] == len(frames) and rows["/stats/latency/fusion_per_frame_ms"] >= 6
+    # the turn is fused after later frames were recorded, yet every channel is in log-time order
+    from mcap.reader import make_reader
+
+    with open(tmp_path / "s.mcap", "rb") as file:
+        in_file_order = [(channel.topic, message.log_time)
+                         for _, channel, message in make_reader(file).iter_messages(log_time_order=False)]
+    for topic in {topic for topic, _ in in_file_order}:
+        times = [t for name, t in in_file_order if name == topic]
+        assert times == sorted(times), topic
+    assert [t for name, t in in_file_order if name == "/fusion/tf"] == [frames[5].timestamp_ns]
 
 
 def test_sigterm_during_live_finalises_every_output(tmp_path):
