@@ -709,14 +709,16 @@ def _cloud_points(message: Any, path: Path, topic: str) -> np.ndarray:
 
 
 def read_point_cloud(path: str | os.PathLike, topic: str = FUSED_CLOUD_TOPIC) -> tuple[np.ndarray, str]:
-    """The last foxglove.PointCloud on ``topic`` (float32 x, y, z fields) as (N, 3) float64 and its frame id.
+    """The last foxglove.PointCloud on ``topic`` (float32 x, y, z fields) as (N, 3) float64 and its frame id;
+    empty clouds (a session's announcement of the topic's frame) do not count.
 
     Raises SourceError with a one-line reason when the file is not MCAP or holds no such cloud.
     """
     path = Path(path)
     last = None
     for _, _, message in _decoded(path, [topic]):
-        last = message
+        if message.data:
+            last = message
     if last is None:
         raise SourceError(f"{path} has no point cloud on {topic}")
     return _cloud_points(last, path, topic), last.frame_id
@@ -739,7 +741,8 @@ def read_fused_units(path: str | os.PathLike) -> list[RecordedUnit]:
     units: dict[int, dict] = {}
     for topic, log_time, message in _decoded(path, [FUSED_CLOUD_TOPIC, UNIT_TOPIC]):
         if topic == FUSED_CLOUD_TOPIC:
-            clouds[log_time] = _cloud_points(message, path, topic)
+            if message.data:  # an empty cloud only announces the topic's frame
+                clouds[log_time] = _cloud_points(message, path, topic)
         else:
             units[log_time] = message
     return [RecordedUnit(clouds[t], np.array(units[t]["T_world_bed"], np.float64).reshape(4, 4),

@@ -73,7 +73,7 @@ class RerunSink(Sink):
 
 class McapSink(Sink):
     """The session MCAP: every captured frame (with ``frames``), each fused cloud coloured, its
-    T_world_bed on /tf and in a unit record, and the caps as a SceneUpdate and as JSON."""
+    T_world_bed on /fusion/tf and in a unit record, and the caps as a SceneUpdate and as JSON."""
 
     def __init__(self, recorder, frames: bool = True):
         self.recorder, self.frames = recorder, frames
@@ -82,7 +82,19 @@ class McapSink(Sink):
     def captured(self, index: int, frame: DepthFrame) -> None:
         if self.frames:
             with self._lock:
+                if not self.recorder.frames:
+                    self._announce_clouds(frame.timestamp_ns)
                 self.recorder.write(frame)
+
+    def _announce_clouds(self, log_time_ns: int) -> None:
+        """Empty clouds on the fused-cloud and cap-outline topics at the first frame: a viewer that
+        meets a topic before its first message knows no frame for it (Rerun flags the 3D view), so
+        both say "world" from the start. Readers skip empty clouds."""
+        from capture.mcap_io import CAP_OUTLINES_TOPIC, FUSED_CLOUD_TOPIC
+
+        for topic in (FUSED_CLOUD_TOPIC, CAP_OUTLINES_TOPIC):
+            self.recorder.write_point_cloud(topic, np.zeros((0, 3), np.float32), log_time_ns, "world",
+                                            colors=np.zeros((0, 3), np.uint8))
 
     def fused(self, unit: FusedUnit) -> None:
         from capture.mcap_io import BED_TRANSFORM_TOPIC, FUSED_CLOUD_TOPIC, UNIT_TOPIC

@@ -59,6 +59,10 @@ def test_live_virtual_turn_is_recorded_fused_detected_and_logged(tmp_path):
         times = [t for name, t in in_file_order if name == topic]
         assert times == sorted(times), topic
     assert [t for name, t in in_file_order if name == "/fusion/tf"] == [frames[5].timestamp_ns]
+    # the fused cloud's and the cap outlines' topics say their frame from the first frame on, with an
+    # empty cloud that readers pass over
+    for topic in ("/fusion/cloud", "/perception/cap_outlines"):
+        assert [t for name, t in in_file_order if name == topic] == [frames[0].timestamp_ns, frames[5].timestamp_ns]
 
 
 def test_sigterm_during_live_finalises_every_output(tmp_path):
