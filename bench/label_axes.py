@@ -23,6 +23,7 @@ import argparse  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from perception.cap import tilt_deg  # noqa: E402
 from perception.detect import DEFAULT_WEIGHTS  # noqa: E402
 from perception.train import load_weights  # noqa: E402
 from pipeline.runner import RunConfig, Runner  # noqa: E402
@@ -42,10 +43,6 @@ def sphere_axis(points: np.ndarray) -> np.ndarray:
     solution = np.linalg.lstsq(np.c_[2 * points, np.ones(len(points))], (points**2).sum(1), rcond=None)[0]
     axis = points.mean(0) - solution[:3]
     return axis / np.linalg.norm(axis)
-
-
-def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(min(1.0, abs(float(a @ b))))))
 
 
 def describe(name: str, angles: list[float]) -> str:
@@ -73,14 +70,14 @@ def main() -> None:
             if len(points) < LABELLED_POINTS:
                 continue
             truth, pca, sphere = bed.rotations[k][:, 2], least_variance_axis(points, up), sphere_axis(points)
-            angles["pca"].append(angle_deg(pca, truth))
-            angles["sphere"].append(angle_deg(sphere, truth))
-            angles["pca_sphere"].append(angle_deg(pca, sphere))
+            angles["pca"].append(float(tilt_deg(pca, truth)))
+            angles["sphere"].append(float(tilt_deg(sphere, truth)))
+            angles["pca_sphere"].append(float(tilt_deg(pca, sphere)))
             distance = np.linalg.norm(caps.centers - bed.centers[k], axis=1) if len(caps) else np.array([np.inf])
             if distance.min() < 0.5 * bed.scales[k, 0]:
                 found = caps.axes[int(distance.argmin())]
-                angles["detector"].append(angle_deg(found, truth))
-                angles["detector_pca"].append(angle_deg(found, pca))
+                angles["detector"].append(float(tilt_deg(found, truth)))
+                angles["detector_pca"].append(float(tilt_deg(found, pca)))
         print(f"bed {seed}: {len(angles['pca'])} caps with {LABELLED_POINTS}+ visible points so far", flush=True)
     print(f"\n{args.beds} beds (seeds 100-{99 + args.beds}), 18 views; {len(angles['pca'])} caps labelled, "
           f"{len(angles['detector'])} of them detected\n")

@@ -86,9 +86,9 @@ RIM_QUANTILE = 0.9
 its own points show. The ellipsoid's s extrapolates the template's dome down to its base, and real
 caps are not the template (the labelled caps of ../shared/real/ are shallow spherical domes, e.g. a
 28 mm rim on a 42 mm sphere): there s came out 18.5 % larger than the labelled radius (median over the
-non-partial caps), the rim 6.7 %. The quantile is the one that measures synthetic caps best (18-view fused beds of
-bench/views.py, scale error 5.6, 4.6 and 5.0 % at 0.85, 0.9 and 0.95 against 3.9 % from the fit; val50 /
-test50 3.95 / 3.65 % against 2.75 / 2.64 %, AP@50 within 0.1 point)."""
+non-partial caps), the rim 6.7 %. The quantile is the one that measures synthetic caps best: on the
+18-view fused beds of bench/views.py, scale error 5.6, 4.6 and 5.0 % at 0.85, 0.9 and 0.95 against
+3.9 % from the fit; val50 / test50 3.95 / 3.66 % against 2.75 / 2.64 %, AP@50 within 0.1 point."""
 HEIGHT_RATIO_RANGE = (CAP_HEIGHT_RATIO * 0.8 / 1.2, CAP_HEIGHT_RATIO * 1.2 / 0.8)
 """s_z / s of the template under per-axis factors in [0.8, 1.2]."""
 
@@ -175,9 +175,11 @@ def fit_caps(points: np.ndarray, predicted_centers: np.ndarray, orientation: np.
     return Caps(centers, rotations, scales, scores, counts)
 
 
-def rim_radii(points: np.ndarray, labels: np.ndarray, caps: Caps, quantile: float = RIM_QUANTILE) -> np.ndarray:
+def rim_radii(points: np.ndarray, labels: np.ndarray, caps: Caps, quantile: float = RIM_QUANTILE,
+              min_points: int = 1) -> np.ndarray:
     """Each cap's ``quantile`` of its points' (N, 3) distances from its axis line (labels 0..K-1, -1
-    ignored), nan for a cap with no point. One sort of all labelled points by (label, distance)."""
+    ignored), nan for a cap with fewer than ``min_points``. One sort of all labelled points by (label,
+    distance)."""
     kept = labels >= 0
     lab = labels[kept]
     offsets = points[kept] - caps.centers[lab]
@@ -185,19 +187,18 @@ def rim_radii(points: np.ndarray, labels: np.ndarray, caps: Caps, quantile: floa
     radial = np.sqrt(np.maximum(np.einsum("ij,ij->i", offsets, offsets) - along**2, 0.0))
     order = np.lexsort((radial, lab))
     counts = np.bincount(lab, minlength=len(caps))
-    present = counts > 0
-    rank = (np.cumsum(counts) - counts)[present] + np.floor(quantile * (counts[present] - 1)).astype(np.int64)
+    enough = counts >= max(min_points, 1)
+    rank = (np.cumsum(counts) - counts)[enough] + np.floor(quantile * (counts[enough] - 1)).astype(np.int64)
     radii = np.full(len(caps), np.nan)
-    radii[present] = radial[order][rank]
+    radii[enough] = radial[order][rank]
     return radii
 
 
 def with_rim_radii(caps: Caps, points: np.ndarray, labels: np.ndarray) -> Caps:
     """The caps with their radius s measured on their own points (``rim_radii``); the height s_z, the
     centre and the axis stay the fit's. A cap with fewer than ``SURFACE_MIN_POINTS`` keeps its fit."""
-    rim = rim_radii(points, labels, caps)
-    counts = np.bincount(labels[labels >= 0], minlength=len(caps))
-    radius = np.where(np.isfinite(rim) & (counts >= SURFACE_MIN_POINTS), rim, caps.radii)
+    rim = rim_radii(points, labels, caps, min_points=SURFACE_MIN_POINTS)
+    radius = np.where(np.isfinite(rim), rim, caps.radii)
     return replace(caps, scales=np.column_stack([radius, radius, caps.scales[:, 2]]))
 
 
