@@ -71,9 +71,25 @@ def test_cap_points_lie_on_their_cap_ellipsoid():
     assert np.median(np.abs(radius - 1.0)) < 0.05
 
 
-def test_no_two_mushrooms_interpenetrate():
+def test_cap_height_flattens_each_cap_and_its_points_follow():
+    low, high = 0.4, 0.6
+    scene = generate_scene(3, SceneConfig(cap_height=(low, high)))
+    ratio = scene.scales[:, 2] / scene.scales[:, :2].mean(1)
+    widest = 1.2 / 0.8  # axis_factor's range, on the height and on each horizontal axis
+    assert ratio.min() >= CAP_HEIGHT_RATIO * low / widest and ratio.max() <= CAP_HEIGHT_RATIO * high * widest
+    assert np.median(ratio) < CAP_HEIGHT_RATIO * high
+    cap = (scene.existence > 0) & (scene.orientation > 0.05)
+    owner = scene.instance[cap]
+    local = np.einsum("nd,nde->ne", scene.points[cap] - scene.centers[owner], scene.rotations[owner])
+    assert np.median(np.abs(np.sqrt(np.sum((local / scene.scales[owner]) ** 2, axis=1)) - 1.0)) < 0.05
+    with pytest.raises(ValueError, match="cap height"):
+        SceneConfig(cap_height=(0.6, 0.4))
+
+
+@pytest.mark.parametrize("cap_height", [(1.0, 1.0), (0.4, 1.1)])
+def test_no_two_mushrooms_interpenetrate(cap_height):
     rng = np.random.default_rng(11)
-    bed = build_bed(rng, SceneConfig(mushrooms=(45, 45), cluster_probability=0.8))
+    bed = build_bed(rng, SceneConfig(mushrooms=(45, 45), cluster_probability=0.8, cap_height=cap_height))
     template = mushroom_template()
     axes = bed.scales / np.array([1, 1, CAP_HEIGHT_RATIO]) / CAP_RADIUS_AT_UNIT_SCALE
     caps = template.vertices[np.unique(template.triangles[template.is_cap])]

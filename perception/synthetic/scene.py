@@ -37,6 +37,10 @@ class SceneConfig:
     mushrooms: tuple[int, int] = (5, 45)
     scale: tuple[float, float] = (0.5, 1.5)
     axis_factor: tuple[float, float] = (0.8, 1.2)
+    cap_height: tuple[float, float] = (1.0, 1.0)
+    """Factor on each cap's height (its vertical semi-axis), on top of ``axis_factor``. The template's
+    dome is 2/3 as high as wide; real caps are shallower (visible height over rim radius about 0.46
+    median, 0.23-0.82 on the real bed of DESIGN.md section 6b), so real-like beds draw it below 1."""
     max_tilt_deg: float = 45.0
     cluster_probability: float = 0.35
     """Chance that a mushroom is placed right beside an existing one: real beds grow in touching
@@ -66,6 +70,8 @@ class SceneConfig:
             raise ValueError(f"unknown visibility model {self.visibility!r}; choose one of {VISIBILITY_MODELS}")
         if self.terrain is not None and self.terrain not in TERRAINS:
             raise ValueError(f"unknown terrain {self.terrain!r}; choose one of {TERRAINS}")
+        if not 0 < self.cap_height[0] <= self.cap_height[1]:
+            raise ValueError(f"cap height factors must satisfy 0 < low <= high, got {self.cap_height}")
         if self.spacing <= 0 or self.bed_size <= 0:
             raise ValueError("spacing and bed size must be positive")
 
@@ -188,6 +194,8 @@ class _Placer:
         rng, config = self.rng, self.config
         tilt = np.radians(config.max_tilt_deg)
         axes = rng.uniform(*config.scale, (n, 1)) * rng.uniform(*config.axis_factor, (n, 3))
+        if config.cap_height != (1.0, 1.0):  # drawn only when asked, so other configs keep their beds
+            axes[:, 2] *= rng.uniform(*config.cap_height, n)
         rotations = cap_rotation(rng.uniform(-tilt, tilt, n), rng.uniform(-tilt, tilt, n),
                                  rng.uniform(-np.pi, np.pi, n))
         radius = CAP_RADIUS_AT_UNIT_SCALE * axes[:, :2].max(1)

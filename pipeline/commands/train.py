@@ -46,6 +46,11 @@ SCENE_FLAGS = {
                "help": "Each bed's point spacing is --spacing times a factor from [low, high]."},
     "scale": {"name": "cap-scale", "parse": positive(float), "metavar": RANGE,
               "help": "Cap scale s of the training beds, a 40 mm cap at s = 1 (the paper's)."},
+    "cap_height": {"name": "cap-height", "parse": positive(float), "metavar": RANGE,
+                   "help": "Factor on each cap's height, from [low, high]: below 1 makes the shallower "
+                           "domes of real beds (1 1: the template's, the paper's)."},
+    "cluster_probability": {"name": "cluster-probability", "parse": at_most(non_negative(float), 1.0),
+                            "metavar": "P", "help": "Chance that a cap is placed touching an earlier one."},
 }
 """The fields of TrainConfig.scene that are train flags, with help written for the command line."""
 
@@ -89,7 +94,8 @@ def _check(args: argparse.Namespace) -> None:
     if args.init_weights and not args.resume and not Path(args.init_weights).is_file():
         raise CliError(f"--init: no weights file at {args.init_weights}")
     ranges = {"--scale-jitter": args.scale_jitter, "--point-dropout": args.point_dropout,
-              "--spacing-jitter": args.scene_jitter, "--cap-scale": args.scene_scale}
+              "--spacing-jitter": args.scene_jitter, "--cap-scale": args.scene_scale,
+              "--cap-height": args.scene_cap_height}
     for flag, (low, high) in ranges.items():
         if low > high:
             raise CliError(f"{flag} wants LOW HIGH with LOW <= HIGH, got {low} {high}")
