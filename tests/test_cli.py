@@ -98,12 +98,13 @@ def test_every_train_config_field_is_a_flag():
         "--seed", "5", "--checkpoint-every", "6", "--validate-every", "8", "--validation-scenes", "0",
         "--queue-size", "2", "--no-rotate-z", "--scale-jitter", "1", "1.3", "--point-dropout", "0.1", "0.3",
         "--tilt-deg", "0", "--noise", "0", "--cap-scale", "0.7", "1.2", "--spacing", "0.004",
-        "--spacing-jitter", "0.9", "1.1", "--cap-height", "0.4", "1.1", "--cluster-probability", "0.6"]))
+        "--spacing-jitter", "0.9", "1.1", "--cap-height", "0.4", "1.1", "--cluster-probability", "0.6",
+        "--views", "1", "4"]))
     changed = {name for name, value in vars(config).items() if value != getattr(TrainConfig(), name)}
     assert changed == set(vars(config)), set(vars(config)) - changed
     assert config.init_weights.endswith("/start.pt") and config.point_dropout == (0.1, 0.3)
     assert config.scene == SceneConfig(spacing=0.004, scale=(0.7, 1.2), jitter=(0.9, 1.1), cap_height=(0.4, 1.1),
-                                       cluster_probability=0.6)
+                                       cluster_probability=0.6, views=(1, 4))
 
 
 def test_config_flags_are_read_from_the_source_as_the_dataclass_has_them():
@@ -209,12 +210,12 @@ def test_a_spacing_in_millimetres_or_too_fine_gives_one_line_and_exit_2(tmp_path
     assert not (tmp_path / "run").exists() and not (tmp_path / "s").exists()
 
 
-@pytest.mark.parametrize("flag", ["--scale-jitter", "--point-dropout", "--cap-scale", "--spacing-jitter",
-                                  "--cap-height"])
-def test_a_range_upside_down_gives_one_line_and_exit_2(tmp_path, capsys, flag):
+@pytest.mark.parametrize("flag,low,high", [(flag, "0.3", "0.2") for flag in (
+    "--scale-jitter", "--point-dropout", "--cap-scale", "--spacing-jitter", "--cap-height")] + [("--views", "3", "2")])
+def test_a_range_upside_down_gives_one_line_and_exit_2(tmp_path, capsys, flag, low, high):
     from pipeline.cli import main
 
-    assert main(["train", "--out", str(tmp_path / "run"), flag, "0.3", "0.2"]) == 2
+    assert main(["train", "--out", str(tmp_path / "run"), flag, low, high]) == 2
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and f"{flag} wants LOW HIGH with LOW <= HIGH" in lines[0], lines
     assert not (tmp_path / "run").exists()

@@ -86,6 +86,18 @@ def test_cap_height_flattens_each_cap_and_its_points_follow():
         SceneConfig(cap_height=(0.6, 0.4))
 
 
+def test_more_views_show_the_stems_and_sides_one_overhead_view_hides():
+    def stem_share(views):
+        scenes = [generate_scene(seed, SceneConfig(views=views, mushrooms=(25, 25))) for seed in (1, 2, 3)]
+        return np.mean([np.mean(s.instance[~s.is_cap] >= 0) for s in scenes])
+
+    assert stem_share((4, 4)) > 1.5 * stem_share((1, 1))
+    with pytest.raises(ValueError, match="hpr"):
+        SceneConfig(views=(1, 3), visibility="camera")
+    with pytest.raises(ValueError, match="view counts"):
+        SceneConfig(views=(0, 2))
+
+
 @pytest.mark.parametrize("cap_height", [(1.0, 1.0), (0.4, 1.1)])
 def test_no_two_mushrooms_interpenetrate(cap_height):
     rng = np.random.default_rng(11)

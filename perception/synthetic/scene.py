@@ -59,6 +59,11 @@ class SceneConfig:
     visibility: str = "hpr"
     view_height: tuple[float, float] = (0.45, 0.75)
     view_off_nadir_deg: float = 25.0
+    views: tuple[int, int] = (1, 1)
+    """How many viewpoints a bed is seen from, drawn per bed from [low, high]; their visible points are
+    pooled, as in a cloud fused from several camera poses (stems, rims and cap sides that one overhead
+    view hides). The views after the first look in from 15-40 degrees off nadir, spread around the bed.
+    Only with ``hpr`` visibility."""
     ground_cell: float = 0.004
     sensor: SensorModel = field(default_factory=SensorModel)
 
@@ -72,6 +77,10 @@ class SceneConfig:
             raise ValueError(f"unknown terrain {self.terrain!r}; choose one of {TERRAINS}")
         if not 0 < self.cap_height[0] <= self.cap_height[1]:
             raise ValueError(f"cap height factors must satisfy 0 < low <= high, got {self.cap_height}")
+        if not 1 <= self.views[0] <= self.views[1]:
+            raise ValueError(f"view counts must satisfy 1 <= low <= high, got {self.views}")
+        if self.views[1] > 1 and self.visibility != "hpr":
+            raise ValueError(f"more than one view needs hpr visibility, not {self.visibility!r}")
         if self.spacing <= 0 or self.bed_size <= 0:
             raise ValueError("spacing and bed size must be positive")
 
@@ -318,6 +327,22 @@ def _viewpoint(rng: np.random.Generator, config: SceneConfig) -> tuple[np.ndarra
     return eye, target
 
 
+EXTRA_VIEW_OFF_NADIR_DEG = (15.0, 40.0)
+"""How far from straight down the views after a bed's first look in, in degrees: a scan walks round the bed."""
+
+
+def _extra_viewpoints(rng: np.random.Generator, config: SceneConfig, target: np.ndarray) -> list[np.ndarray]:
+    """The eyes of a bed's views after the first, spread around it (none for a single-view config)."""
+    if config.views[1] == 1:
+        return []  # draws nothing, so single-view beds stay as they were
+    count = int(rng.integers(config.views[0], config.views[1] + 1)) - 1
+    azimuth = rng.uniform(0, 2 * np.pi) + 2 * np.pi * np.arange(count) / max(count, 1) + rng.uniform(-0.3, 0.3, count)
+    off_nadir = np.radians(rng.uniform(*EXTRA_VIEW_OFF_NADIR_DEG, count))
+    height = rng.uniform(*config.view_height, count)
+    offset = np.stack([np.sin(off_nadir) * np.cos(azimuth), np.sin(off_nadir) * np.sin(azimuth), np.cos(off_nadir)], 1)
+    return list(target + height[:, None] * offset)
+
+
 def visible_from(points: np.ndarray, normals: np.ndarray, eye: np.ndarray, target: np.ndarray,
                  pixel: float) -> np.ndarray:
     """Hidden point removal with a point z-buffer: which dense surface samples the eye sees.
@@ -346,8 +371,9 @@ def visible_from(points: np.ndarray, normals: np.ndarray, eye: np.ndarray, targe
     return facing & (depth <= zbuffer[iv, iu] + tolerance)
 
 
-def _visible_points(rng, bed: BedMeshes, config: SceneConfig, spacing: float, eye, target):
-    """Visible points at the scene's density and the triangle each came from."""
+def _visible_points(rng, bed: BedMeshes, config: SceneConfig, spacing: float, eye, target, extra_eyes=()):
+    """Visible points at the scene's density and the triangle each came from: seen from ``eye`` and,
+    pooled with them, from each of ``extra_eyes`` (hpr only)."""
     if config.visibility == "camera":
         intrinsics = CameraIntrinsics.realsense_d405()
         T_world_camera = look_at(eye, target)
@@ -360,9 +386,12 @@ def _visible_points(rng, bed: BedMeshes, config: SceneConfig, spacing: float, ey
         points, triangle = points[hit], triangle[hit]
     else:
         density = config.oversample * rng.uniform(*config.jitter) / spacing**2
-        points, triangle, normals = _sample_surface(rng, bed, density, eye if config.visibility == "hpr" else None)
+        cull_for = eye if config.visibility == "hpr" and not len(extra_eyes) else None
+        points, triangle, normals = _sample_surface(rng, bed, density, cull_for)
         if config.visibility == "hpr":
             visible = visible_from(points, normals, eye, target, pixel=0.7 * spacing)
+            for other in extra_eyes:
+                visible |= visible_from(points, normals, other, target, pixel=0.7 * spacing)
             points, triangle = points[visible], triangle[visible]
         else:
             keep = voxel_representatives(points, spacing)
@@ -385,7 +414,7 @@ def generate_scene(seed: int, config: SceneConfig = SceneConfig()) -> SyntheticS
     bed = build_bed(rng, config)
     spacing = config.spacing * rng.uniform(*config.jitter)
     eye, target = _viewpoint(rng, config)
-    points, triangle = _visible_points(rng, bed, config, spacing, eye, target)
+    points, triangle = _visible_points(rng, bed, config, spacing, eye, target, _extra_viewpoints(rng, config, target))
     instance = bed.triangle_instance[triangle]
     is_cap = bed.triangle_is_cap[triangle]
     targets = encode(points, instance, is_cap, bed.centers, bed.rotations, bed.scales)

@@ -49,6 +49,9 @@ SCENE_FLAGS = {
     "cap_height": {"name": "cap-height", "parse": positive(float), "metavar": RANGE,
                    "help": "Factor on each cap's height, from [low, high]: below 1 makes the shallower "
                            "domes of real beds (1 1: the template's, the paper's)."},
+    "views": {"name": "views", "parse": positive(int), "metavar": RANGE,
+              "help": "Viewpoints each training bed is seen from, from [low, high], their points pooled as "
+                      "in a fused cloud (1 1: one overhead view, the paper's)."},
     "cluster_probability": {"name": "cluster-probability", "parse": at_most(non_negative(float), 1.0),
                             "metavar": "P", "help": "Chance that a cap is placed touching an earlier one."},
 }
@@ -95,7 +98,7 @@ def _check(args: argparse.Namespace) -> None:
         raise CliError(f"--init: no weights file at {args.init_weights}")
     ranges = {"--scale-jitter": args.scale_jitter, "--point-dropout": args.point_dropout,
               "--spacing-jitter": args.scene_jitter, "--cap-scale": args.scene_scale,
-              "--cap-height": args.scene_cap_height}
+              "--cap-height": args.scene_cap_height, "--views": args.scene_views}
     for flag, (low, high) in ranges.items():
         if low > high:
             raise CliError(f"{flag} wants LOW HIGH with LOW <= HIGH, got {low} {high}")
