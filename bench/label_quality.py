@@ -1,15 +1,18 @@
-"""How good are colour-made cap axes? The labels of ../shared/real/ take a cap's axis as the
-least-variance PCA axis of its visible points (checked against a sphere fit). This bench makes the
-same two axes on fused synthetic beds, where the true axis is known, and sets them beside the
-detector's.
+"""How good are colour-made cap labels? The labels of ../shared/real/ take a cap's axis as the
+least-variance PCA axis of its visible points (checked against a sphere fit) and its radius from the
+area of its top-view footprint. This bench makes the same axes and radius on fused synthetic beds,
+where the true pose is known, and sets them beside the detector's.
 
 Each virtual bed (18 views, 848x480, D405-like noise) is fused and detected by the product's runner, as
 in bench/views.py. A cap's visible points are the fused points within 2 mm of its cap surface; caps
 with fewer than 250 (the labels' "small" partial cut) are left out, as the labels leave them out of
 the non-partial figures. Prints, over those caps, the angle from the true axis of: the PCA axis, the
 sphere-fit axis (centroid minus sphere centre) and the detector's axis; and the angles the real-cloud
-bench would score: the detector against the PCA axis, and PCA against the sphere fit.
-Usage: python bench/label_axes.py [--beds 10]
+bench would score: the detector against the PCA axis, and PCA against the sphere fit. Then the
+relative error of the footprint radius (the radius of a circle with the area of the convex hull of the
+cap's points seen from above the bed) and of the detector's radius against the true radius, and of
+the detector's radius against the footprint radius, as the real-cloud bench scores it.
+Usage: python bench/label_quality.py [--beds 10]
 """
 
 import sys
@@ -22,6 +25,7 @@ import argparse  # noqa: E402
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from scipy.spatial import ConvexHull  # noqa: E402
 
 from perception.cap import tilt_deg  # noqa: E402
 from perception.detect import DEFAULT_WEIGHTS  # noqa: E402
@@ -45,9 +49,16 @@ def sphere_axis(points: np.ndarray) -> np.ndarray:
     return axis / np.linalg.norm(axis)
 
 
-def describe(name: str, angles: list[float]) -> str:
-    values = np.asarray(angles)
-    return (f"| {name} | {values.mean():.1f} | {np.median(values):.1f} | {np.percentile(values, 90):.1f} |")
+def footprint_radius(points: np.ndarray, T_world_bed: np.ndarray) -> float:
+    """The radius of the circle whose area is that of the points' convex hull in the bed's top view."""
+    in_bed = (points - T_world_bed[:3, 3]) @ T_world_bed[:3, :3]
+    return float(np.sqrt(ConvexHull(in_bed[:, :2]).volume / np.pi))
+
+
+def describe(name: str, values: list[float], scale: float = 1.0, digits: int = 1) -> str:
+    values = scale * np.asarray(values)
+    return (f"| {name} | {values.mean():.{digits}f} | {np.median(values):.{digits}f} | "
+            f"{np.percentile(values, 90):.{digits}f} |")
 
 
 def main() -> None:
@@ -58,6 +69,7 @@ def main() -> None:
     torch.set_num_threads(2)
     model, _ = load_weights(args.model)
     angles: dict[str, list[float]] = {key: [] for key in ("pca", "sphere", "detector", "detector_pca", "pca_sphere")}
+    radius_errors: dict[str, list[float]] = {key: [] for key in ("footprint", "detector", "detector_footprint")}
     for seed in range(args.beds):
         source, bed = virtual_bed_source(VirtualBed(seed=100 + seed, views=18))
         summary = Runner(source, model, RunConfig(), []).run()
@@ -73,11 +85,16 @@ def main() -> None:
             angles["pca"].append(float(tilt_deg(pca, truth)))
             angles["sphere"].append(float(tilt_deg(sphere, truth)))
             angles["pca_sphere"].append(float(tilt_deg(pca, sphere)))
+            true_radius, footprint = bed.scales[k, :2].mean(), footprint_radius(points, fused.T_world_bed)
+            radius_errors["footprint"].append(abs(footprint - true_radius) / true_radius)
             distance = np.linalg.norm(caps.centers - bed.centers[k], axis=1) if len(caps) else np.array([np.inf])
             if distance.min() < 0.5 * bed.scales[k, 0]:
                 found = caps.axes[int(distance.argmin())]
                 angles["detector"].append(float(tilt_deg(found, truth)))
                 angles["detector_pca"].append(float(tilt_deg(found, pca)))
+                radius = caps.radii[int(distance.argmin())]
+                radius_errors["detector"].append(abs(radius - true_radius) / true_radius)
+                radius_errors["detector_footprint"].append(abs(radius - footprint) / footprint)
         print(f"bed {seed}: {len(angles['pca'])} caps with {LABELLED_POINTS}+ visible points so far", flush=True)
     print(f"\n{args.beds} beds (seeds 100-{99 + args.beds}), 18 views; {len(angles['pca'])} caps labelled, "
           f"{len(angles['detector'])} of them detected\n")
@@ -88,6 +105,12 @@ def main() -> None:
     print(describe("detector against the truth", angles["detector"]))
     print(describe("detector against the PCA axis (what bench/real.py scores)", angles["detector_pca"]))
     print(describe("PCA against the sphere fit (the labels' own check)", angles["pca_sphere"]))
+    print("\n| radius, relative error | mean (%) | median (%) | 90th percentile (%) |")
+    print("|---|---|---|---|")
+    print(describe("footprint radius against the truth", radius_errors["footprint"], 100))
+    print(describe("detector against the truth", radius_errors["detector"], 100))
+    print(describe("detector against the footprint radius (what bench/real.py scores)",
+                   radius_errors["detector_footprint"], 100))
 
 
 if __name__ == "__main__":
