@@ -46,6 +46,8 @@ def main() -> None:
     os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
     seeds = scene_seeds(123, args.scenes)
     generate_scene(seeds[0])
+    print(f"{args.spacing * 1000:g} mm spacing; hpr beds seen from {args.views[0]}-{args.views[1]} views, cap heights "
+          f"x {args.cap_height[0]:g}-{args.cap_height[1]:g}")
     print(f"{'visibility':<10} {'median ms':>10} {'p90 ms':>8} {'median pts':>11} {'pts/s':>10} {'x paper':>8}")
     for model in args.models:
         extra = {"views": tuple(args.views), "cap_height": tuple(args.cap_height)} if model == "hpr" else {}

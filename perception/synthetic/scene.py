@@ -38,9 +38,11 @@ class SceneConfig:
     scale: tuple[float, float] = (0.5, 1.5)
     axis_factor: tuple[float, float] = (0.8, 1.2)
     cap_height: tuple[float, float] = (1.0, 1.0)
-    """Factor on each cap's height (its vertical semi-axis), on top of ``axis_factor``. The template's
-    dome is 2/3 as high as wide; real caps are shallower (visible height over rim radius about 0.46
-    median, 0.23-0.82 on the real bed of DESIGN.md section 6b), so real-like beds draw it below 1."""
+    """Factor on each mushroom's vertical scale (cap, rim and stem alike), on top of ``axis_factor``. The
+    template's dome is 2/3 as high as wide; the labelled real caps of ../shared/real/ are shallower
+    (sphere fits of the non-partial caps: visible height over rim radius 0.46 median, 0.33-0.70 from the 10th to the 90th
+    percentile), so real-like beds draw it below 1. The pose fit's height-ratio gate
+    (``perception.pose.HEIGHT_RATIO_RANGE``) is the template's."""
     max_tilt_deg: float = 45.0
     cluster_probability: float = 0.35
     """Chance that a mushroom is placed right beside an existing one: real beds grow in touching
@@ -62,8 +64,8 @@ class SceneConfig:
     views: tuple[int, int] = (1, 1)
     """How many viewpoints a bed is seen from, drawn per bed from [low, high]; their visible points are
     pooled, as in a cloud fused from several camera poses (stems, rims and cap sides that one overhead
-    view hides). The views after the first look in from 15-40 degrees off nadir, spread around the bed.
-    Only with ``hpr`` visibility."""
+    view hides). The views after the first look in from 15-40 degrees off nadir, spread around the bed;
+    the scene's ``viewpoint`` is the first. Only with ``hpr`` visibility."""
     ground_cell: float = 0.004
     sensor: SensorModel = field(default_factory=SensorModel)
 
@@ -77,7 +79,7 @@ class SceneConfig:
             raise ValueError(f"unknown terrain {self.terrain!r}; choose one of {TERRAINS}")
         if not 0 < self.cap_height[0] <= self.cap_height[1]:
             raise ValueError(f"cap height factors must satisfy 0 < low <= high, got {self.cap_height}")
-        if not 1 <= self.views[0] <= self.views[1]:
+        if any(int(count) != count for count in self.views) or not 1 <= self.views[0] <= self.views[1]:
             raise ValueError(f"view counts must satisfy 1 <= low <= high, got {self.views}")
         if self.views[1] > 1 and self.visibility != "hpr":
             raise ValueError(f"more than one view needs hpr visibility, not {self.visibility!r}")
