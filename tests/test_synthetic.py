@@ -110,10 +110,24 @@ def test_more_views_show_the_stems_and_sides_one_overhead_view_hides():
         SceneConfig(views=(0, 2))
 
 
-@pytest.mark.parametrize("cap_height", [(1.0, 1.0), (0.4, 1.1)])
-def test_no_two_mushrooms_interpenetrate(cap_height):
+def test_a_clustered_mushroom_stands_at_the_drawn_spacing_from_an_earlier_one():
+    low, high = 0.85, 0.9
+    bed = build_bed(np.random.default_rng(4), SceneConfig(mushrooms=(30, 30), cluster_probability=1.0,
+                                                          cluster_spacing=(low, high)))
+    assert len(bed.centers) > 10
+    for k in range(1, len(bed.centers)):
+        distance = np.linalg.norm(bed.centers[:k, :2] - bed.centers[k, :2], axis=1)
+        ratio = distance / (bed.scales[:k, :2].mean(1) + bed.scales[k, :2].max())
+        assert np.any((ratio >= low - 1e-9) & (ratio <= high + 1e-9)), (k, ratio.min())
+    with pytest.raises(ValueError, match="cluster spacing"):
+        SceneConfig(cluster_spacing=(1.0, 0.5))
+
+
+@pytest.mark.parametrize("cap_height,cluster_spacing", [((1.0, 1.0), (0.8, 1.15)), ((0.4, 1.1), (0.55, 1.1))])
+def test_no_two_mushrooms_interpenetrate(cap_height, cluster_spacing):
     rng = np.random.default_rng(11)
-    bed = build_bed(rng, SceneConfig(mushrooms=(45, 45), cluster_probability=0.8, cap_height=cap_height))
+    bed = build_bed(rng, SceneConfig(mushrooms=(45, 45), cluster_probability=0.8, cap_height=cap_height,
+                                     cluster_spacing=cluster_spacing))
     template = mushroom_template()
     axes = bed.scales / np.array([1, 1, CAP_HEIGHT_RATIO]) / CAP_RADIUS_AT_UNIT_SCALE
     caps = template.vertices[np.unique(template.triangles[template.is_cap])]

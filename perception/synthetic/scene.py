@@ -47,6 +47,10 @@ class SceneConfig:
     cluster_probability: float = 0.35
     """Chance that a mushroom is placed right beside an existing one: real beds grow in touching
     clusters (DESIGN.md section 6b), which uniform placement alone rarely produces."""
+    cluster_spacing: tuple[float, float] = (0.8, 1.15)
+    """Distance between the centres of a clustered mushroom and its neighbour, as a factor on the sum
+    of their radii, drawn from [low, high]. Below 1 the caps overlap in top view, so one stands
+    partly under the other's rim where they do not collide."""
     distractors: tuple[int, int] = (0, 6)
     terrain: str | None = None
     """One of TERRAINS, or None for a random one per scene."""
@@ -77,6 +81,8 @@ class SceneConfig:
             raise ValueError(f"unknown visibility model {self.visibility!r}; choose one of {VISIBILITY_MODELS}")
         if self.terrain is not None and self.terrain not in TERRAINS:
             raise ValueError(f"unknown terrain {self.terrain!r}; choose one of {TERRAINS}")
+        if not 0 < self.cluster_spacing[0] <= self.cluster_spacing[1]:
+            raise ValueError(f"cluster spacing factors must satisfy 0 < low <= high, got {self.cluster_spacing}")
         if not 0 < self.cap_height[0] <= self.cap_height[1]:
             raise ValueError(f"cap height factors must satisfy 0 < low <= high, got {self.cap_height}")
         if any(int(count) != count for count in self.views) or not 1 <= self.views[0] <= self.views[1]:
@@ -214,7 +220,7 @@ class _Placer:
         return {"axes": axes, "rotations": rotations, "radius": radius,
                 "xy": rng.uniform(-1, 1, (n, 2)) * half,
                 "cluster": rng.random(n) < config.cluster_probability,
-                "neighbour": rng.random(n), "spacing": rng.uniform(0.8, 1.15, n),
+                "neighbour": rng.random(n), "spacing": rng.uniform(*config.cluster_spacing, n),
                 "direction": rng.uniform(0, 2 * np.pi, n),
                 "foot": np.einsum("nij,nj->ni", rotations, self.foot * axes),
                 "sink": -self.foot[2] * axes[:, 2] * rng.uniform(0.2, 0.7, n)}

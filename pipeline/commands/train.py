@@ -54,6 +54,10 @@ SCENE_FLAGS = {
                       "in a fused cloud (1 1: one overhead view, the paper's)."},
     "cluster_probability": {"name": "cluster-probability", "parse": at_most(non_negative(float), 1.0),
                             "metavar": "P", "help": "Chance that a cap is placed touching an earlier one."},
+    "cluster_spacing": {"name": "cluster-spacing", "parse": positive(float), "metavar": RANGE,
+                        "help": "Centre distance of a clustered cap from its neighbour, as a factor on "
+                                "their radii's sum, from [low, high]; below 1 one stands partly under the "
+                                "other's rim."},
 }
 """The fields of TrainConfig.scene that are train flags, with help written for the command line."""
 
@@ -98,7 +102,8 @@ def _check(args: argparse.Namespace) -> None:
         raise CliError(f"--init: no weights file at {args.init_weights}")
     ranges = {"--scale-jitter": args.scale_jitter, "--point-dropout": args.point_dropout,
               "--spacing-jitter": args.scene_jitter, "--cap-scale": args.scene_scale,
-              "--cap-height": args.scene_cap_height, "--views": args.scene_views}
+              "--cap-height": args.scene_cap_height, "--views": args.scene_views,
+              "--cluster-spacing": args.scene_cluster_spacing}
     for flag, (low, high) in ranges.items():
         if low > high:
             raise CliError(f"{flag} wants LOW HIGH with LOW <= HIGH, got {low} {high}")
