@@ -49,10 +49,10 @@ def sphere_axis(points: np.ndarray) -> np.ndarray:
     return axis / np.linalg.norm(axis)
 
 
-def footprint_radius(points: np.ndarray, T_world_bed: np.ndarray) -> float:
-    """The radius of the circle whose area is that of the points' convex hull in the bed's top view."""
-    in_bed = (points - T_world_bed[:3, 3]) @ T_world_bed[:3, :3]
-    return float(np.sqrt(ConvexHull(in_bed[:, :2]).volume / np.pi))
+def footprint_radius(bed_points: np.ndarray) -> float:
+    """The radius of the circle whose area is that of the points' convex hull in the bed's top view
+    (points in the bed frame)."""
+    return float(np.sqrt(ConvexHull(bed_points[:, :2]).volume / np.pi))
 
 
 def describe(name: str, values: list[float], scale: float = 1.0, digits: int = 1) -> str:
@@ -78,21 +78,23 @@ def main() -> None:
         cap_of_point = bed.cap_of_points(world, ON_SURFACE)
         up = fused.T_world_bed[:3, 2]
         for k in range(len(bed.centers)):
-            points = world[cap_of_point == k]
+            mine = cap_of_point == k
+            points = world[mine]
             if len(points) < LABELLED_POINTS:
                 continue
             truth, pca, sphere = bed.rotations[k][:, 2], least_variance_axis(points, up), sphere_axis(points)
             angles["pca"].append(float(tilt_deg(pca, truth)))
             angles["sphere"].append(float(tilt_deg(sphere, truth)))
             angles["pca_sphere"].append(float(tilt_deg(pca, sphere)))
-            true_radius, footprint = bed.scales[k, :2].mean(), footprint_radius(points, fused.T_world_bed)
+            true_radius, footprint = bed.scales[k, :2].mean(), footprint_radius(fused.points[mine])
             radius_errors["footprint"].append(abs(footprint - true_radius) / true_radius)
             distance = np.linalg.norm(caps.centers - bed.centers[k], axis=1) if len(caps) else np.array([np.inf])
             if distance.min() < 0.5 * bed.scales[k, 0]:
-                found = caps.axes[int(distance.argmin())]
+                nearest = int(distance.argmin())
+                found = caps.axes[nearest]
                 angles["detector"].append(float(tilt_deg(found, truth)))
                 angles["detector_pca"].append(float(tilt_deg(found, pca)))
-                radius = caps.radii[int(distance.argmin())]
+                radius = caps.radii[nearest]
                 radius_errors["detector"].append(abs(radius - true_radius) / true_radius)
                 radius_errors["detector_footprint"].append(abs(radius - footprint) / footprint)
         print(f"bed {seed}: {len(angles['pca'])} caps with {LABELLED_POINTS}+ visible points so far", flush=True)

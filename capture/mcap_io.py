@@ -669,10 +669,10 @@ CAPS_TOPIC = "/perception/mushrooms"
 CAP_OUTLINES_TOPIC = "/perception/cap_outlines"
 """The caps as wire domes in a point cloud, for viewers that draw no SceneUpdate."""
 UNIT_TOPIC = "/fusion/unit"
+"""JSON per fused cloud: its frames and its exact T_world_bed, so replay can start from fusion's output."""
 BED_TRANSFORM_TOPIC = "/fusion/tf"
 """world -> bed of each fused cloud, for viewers: written when the unit is fused, after later frames'
 /tf messages, so on a topic of its own."""
-"""JSON per fused cloud: its frames and its exact T_world_bed, so replay can start from fusion's output."""
 
 
 def _decoded(path: Path, topics: list[str]) -> Iterator[tuple[str, int, Any]]:

@@ -61,11 +61,16 @@ def test_scene_ground_truth_is_consistent():
         np.testing.assert_array_equal(np.bincount(scene.instance[scene.is_cap], minlength=k), scene.visible_cap_points)
 
 
+def dome_points(scene):
+    """The scene's points on cap domes: in the bed frame, in their cap's frame, and their cap."""
+    cap = (scene.existence > 0) & (scene.orientation > 0.05)
+    owner, points = scene.instance[cap], scene.points[cap].astype(np.float64)
+    return points, np.einsum("nd,nde->ne", points - scene.centers[owner], scene.rotations[owner]), owner
+
+
 def test_cap_points_lie_on_their_cap_ellipsoid():
     scene = generate_scene(3)
-    cap = (scene.existence > 0) & (scene.orientation > 0.05)
-    owner = scene.instance[cap]
-    local = np.einsum("nd,nde->ne", scene.points[cap] - scene.centers[owner], scene.rotations[owner])
+    _, local, owner = dome_points(scene)
     radius = np.sqrt(np.sum((local / scene.scales[owner]) ** 2, axis=1))
     # local deformations move the surface by about half a millimetre
     assert np.median(np.abs(radius - 1.0)) < 0.05
@@ -78,9 +83,7 @@ def test_cap_height_flattens_each_cap_and_its_points_follow():
     widest = 1.2 / 0.8  # axis_factor's range, on the height and on each horizontal axis
     assert ratio.min() >= CAP_HEIGHT_RATIO * low / widest and ratio.max() <= CAP_HEIGHT_RATIO * high * widest
     assert np.median(ratio) < CAP_HEIGHT_RATIO * high
-    cap = (scene.existence > 0) & (scene.orientation > 0.05)
-    owner = scene.instance[cap]
-    local = np.einsum("nd,nde->ne", scene.points[cap] - scene.centers[owner], scene.rotations[owner])
+    _, local, owner = dome_points(scene)
     assert np.median(np.abs(np.sqrt(np.sum((local / scene.scales[owner]) ** 2, axis=1)) - 1.0)) < 0.05
     with pytest.raises(ValueError, match="cap height"):
         SceneConfig(cap_height=(0.6, 0.4))
@@ -93,9 +96,7 @@ def test_more_views_show_the_stems_and_sides_one_overhead_view_hides():
         for seed in (1, 2, 3):
             scene = generate_scene(seed, SceneConfig(views=views, mushrooms=(25, 25)))
             stems.append(np.mean(scene.instance[~scene.is_cap] >= 0))
-            cap = (scene.existence > 0) & (scene.orientation > 0.05)
-            owner, points = scene.instance[cap], scene.points[cap].astype(np.float64)
-            local = np.einsum("nd,nde->ne", points - scene.centers[owner], scene.rotations[owner])
+            points, local, owner = dome_points(scene)
             normal = np.einsum("nde,ne->nd", scene.rotations[owner], local / scene.scales[owner] ** 2)
             away.append(np.mean(np.einsum("nd,nd->n", normal, scene.viewpoint - points) < 0))
         return np.mean(stems), np.mean(away)
