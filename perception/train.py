@@ -15,7 +15,7 @@ import json
 import multiprocessing as mp
 import queue as queues
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +26,7 @@ from torch.optim.swa_utils import AveragedModel
 from tqdm import tqdm
 
 from common.files import write_atomically
+from fusion.integrate import IntegrationConfig
 from perception.cap import cap_rotation
 from perception.encoding import encode
 from perception.model import (INFERENCE_ZOOM, LENGTH_UNIT, NETWORK_PRESETS, MushroomNet,
@@ -98,6 +99,10 @@ class TrainConfig:
     """Standard deviation (metres) of Gaussian jitter on the points."""
     scene: SceneConfig = field(default_factory=SceneConfig)
     """The synthetic beds trained on."""
+    fused_share: float = 0.0
+    """Share of the training beds made as the product makes a scan instead: the virtual camera's noisy
+    frames from 2-6 viewpoints, merged as fusion merges them, at its 2 mm voxel. The model then also
+    sees a scan's artefacts: rims smoothed into the soil, holes at grazing angles, stereo shadows."""
 
     @property
     def averaging_start(self) -> int | None:
@@ -110,6 +115,18 @@ class TrainConfig:
         return values
 
 
+FUSED_BEDS = {"visibility": "fused", "views": (2, 6), "spacing": IntegrationConfig().voxel}
+"""What sets a ``fused_share`` bed apart from ``TrainConfig.scene``: 2-6 viewpoints merged at fusion's own voxel."""
+
+
+def scene_config(config: TrainConfig, seed: int) -> SceneConfig:
+    """The scene configuration of the bed drawn from ``seed``: ``config.scene``, or for a share
+    ``fused_share`` of the seeds, the same with ``FUSED_BEDS``."""
+    if config.fused_share > 0 and np.random.default_rng(seed + 2).random() < config.fused_share:
+        return replace(config.scene, **FUSED_BEDS)
+    return config.scene
+
+
 def iteration_seed(run_seed: int, iteration: int) -> int:
     return int(np.random.SeedSequence([run_seed, iteration]).generate_state(1)[0])
 
@@ -117,7 +134,7 @@ def iteration_seed(run_seed: int, iteration: int) -> int:
 def augmented_sample(config: TrainConfig, iteration: int) -> dict[str, np.ndarray]:
     """Points and per-point targets of iteration ``iteration``'s scene after augmentation."""
     seed = iteration_seed(config.seed, iteration)
-    scene = generate_scene(seed, config.scene)
+    scene = generate_scene(seed, scene_config(config, seed))
     rng = np.random.default_rng(seed + 1)
     rotation = np.eye(3)
     if config.rotate_z:

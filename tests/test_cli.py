@@ -99,12 +99,14 @@ def test_every_train_config_field_is_a_flag():
         "--queue-size", "2", "--no-rotate-z", "--scale-jitter", "1", "1.3", "--point-dropout", "0.1", "0.3",
         "--tilt-deg", "0", "--noise", "0", "--cap-scale", "0.7", "1.2", "--spacing", "0.004",
         "--spacing-jitter", "0.9", "1.1", "--cap-height", "0.4", "1.1", "--cluster-probability", "0.6",
-        "--views", "1", "4", "--cluster-spacing", "0.6", "1.1"]))
+        "--views", "1", "4", "--cluster-spacing", "0.6", "1.1", "--visibility", "fused",
+        "--fused-share", "0.3", "--soil-holes", "0.1", "0.4"]))
     changed = {name for name, value in vars(config).items() if value != getattr(TrainConfig(), name)}
     assert changed == set(vars(config)), set(vars(config)) - changed
     assert config.init_weights.endswith("/start.pt") and config.point_dropout == (0.1, 0.3)
     assert config.scene == SceneConfig(spacing=0.004, scale=(0.7, 1.2), jitter=(0.9, 1.1), cap_height=(0.4, 1.1),
-                                       cluster_probability=0.6, views=(1, 4), cluster_spacing=(0.6, 1.1))
+                                       cluster_probability=0.6, views=(1, 4), cluster_spacing=(0.6, 1.1),
+                                       visibility="fused", soil_holes=(0.1, 0.4))
 
 
 def test_config_flags_are_read_from_the_source_as_the_dataclass_has_them():
@@ -211,13 +213,25 @@ def test_a_spacing_in_millimetres_or_too_fine_gives_one_line_and_exit_2(tmp_path
 
 
 @pytest.mark.parametrize("flag,low,high", [(flag, "0.3", "0.2") for flag in (
-    "--scale-jitter", "--point-dropout", "--cap-scale", "--spacing-jitter", "--cap-height", "--cluster-spacing")] + [("--views", "3", "2")])
+    "--scale-jitter", "--point-dropout", "--cap-scale", "--spacing-jitter", "--cap-height", "--cluster-spacing",
+    "--soil-holes")] + [("--views", "3", "2")])
 def test_a_range_upside_down_gives_one_line_and_exit_2(tmp_path, capsys, flag, low, high):
     from pipeline.cli import main
 
     assert main(["train", "--out", str(tmp_path / "run"), flag, low, high]) == 2
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and f"{flag} wants LOW HIGH with LOW <= HIGH" in lines[0], lines
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("flags,message", [(["--visibility", "sonar"], "unknown visibility model 'sonar'"),
+                                           (["--visibility", "camera", "--views", "1", "3"], "hpr or fused")])
+def test_scene_flags_that_make_no_scene_give_one_line_and_exit_2(tmp_path, capsys, flags, message):
+    from pipeline.cli import main
+
+    assert main(["train", "--out", str(tmp_path / "run"), *flags]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], lines
     assert not (tmp_path / "run").exists()
 
 

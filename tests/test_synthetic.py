@@ -105,7 +105,7 @@ def test_more_views_show_the_stems_and_sides_one_overhead_view_hides():
     assert stems_four > 1.5 * stems_one
     # one view sees the far side of a cap only where the dome is deformed; pooled views see it round
     assert away_one < 0.03 and away_four > 3 * away_one
-    with pytest.raises(ValueError, match="hpr"):
+    with pytest.raises(ValueError, match="hpr or fused"):
         SceneConfig(views=(1, 3), visibility="camera")
     with pytest.raises(ValueError, match="view counts"):
         SceneConfig(views=(0, 2))
@@ -169,6 +169,49 @@ def test_other_visibility_models_give_labelled_clouds(visibility):
     assert len(scene.points) > 3000
     assert scene.is_cap.sum() > 100
     assert (scene.visible_cap_points > 0).sum() >= 8
+
+
+def test_a_fused_bed_is_its_noisy_views_merged_and_labelled_by_the_surface_each_point_shows():
+    config = SceneConfig(visibility="fused", views=(3, 3), spacing=0.002, mushrooms=(15, 15))
+    scene = generate_scene(5, config)
+    bed = build_bed(np.random.default_rng(5), config)
+    triangle, distance = bed.nearest_triangles(scene.points)
+    # the sensor's range noise is about 1.5 mm a pixel at this range; smoothing and merging views average it down
+    assert np.median(distance) < 0.001 and np.percentile(distance, 90) < 0.003
+    assert np.array_equal(scene.instance, bed.triangle_instance[triangle])
+    assert np.array_equal(scene.is_cap, bed.triangle_is_cap[triangle])
+    # one point per merge voxel (the bed's jittered spacing): neighbours about a voxel apart, not the far
+    # finer pixels of three views
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scene.points.astype(np.float64)))
+    assert 0.7 * scene.spacing < np.median(cloud.compute_nearest_neighbor_distance()) < 1.2 * scene.spacing
+    assert (scene.visible_cap_points > 0).sum() >= 14
+    # every point of a merged voxel is the mean of what the views saw there: none is a raw noisy pixel
+    single = generate_scene(5, SceneConfig(visibility="camera", spacing=0.002, mushrooms=(15, 15)))
+    single_distance = bed.nearest_triangles(single.points)[1]
+    assert np.median(distance) < 0.7 * np.median(single_distance)
+
+
+def test_soil_holes_take_blotches_of_bare_soil_and_leave_the_mushrooms_alone():
+    from scipy.spatial import cKDTree
+
+    plain = generate_scene(3, SceneConfig(mushrooms=(15, 15)))
+    holed = generate_scene(3, SceneConfig(mushrooms=(15, 15), soil_holes=(0.3, 0.3)))
+    soil = plain.instance < 0
+    np.testing.assert_array_equal(holed.points[holed.instance >= 0], plain.points[~soil])
+    assert abs(1 - (holed.instance < 0).sum() / soil.sum() - 0.3) < 0.01
+    # blotches, not thinning: of each lost point's 8 nearest soil neighbours most are lost too (about 30 %
+    # would be, were the points dropped at random), and the soil left is as dense as it was
+    soil_points = plain.points[soil]
+    def rows(points):
+        return np.ascontiguousarray(points).view(np.dtype((np.void, points.itemsize * 3))).ravel()
+
+    lost = ~np.isin(rows(soil_points), rows(holed.points[holed.instance < 0]))
+    neighbours = cKDTree(soil_points[:, :2]).query(soil_points[lost, :2], 9)[1][:, 1:]
+    assert lost[neighbours].mean() > 0.8
+    spacing = [np.median(cKDTree(p[:, :2]).query(p[:, :2], 2)[0][:, 1]) for p in (soil_points, soil_points[~lost])]
+    assert spacing[1] < 1.05 * spacing[0]
+    with pytest.raises(ValueError, match="soil hole"):
+        SceneConfig(soil_holes=(0.5, 1.5))
 
 
 def test_encoding_follows_the_definitions():

@@ -9,8 +9,8 @@ import torch
 from perception.model import INFERENCE_ZOOM, LENGTH_UNIT, NETWORK_PRESETS, MushroomNet, NetworkConfig
 from perception.sparse import SparseTensor
 from perception.synthetic.scene import SceneConfig
-from perception.train import (UNRECORDED_ZOOM, TrainConfig, TrainingError, augmented_sample, load_weights,
-                              loss_terms, train, voxel_targets)
+from perception.train import (UNRECORDED_ZOOM, TrainConfig, TrainingError, augmented_sample, iteration_seed,
+                              load_weights, loss_terms, scene_config, train, voxel_targets)
 
 TINY = NetworkConfig(channels=(8, 8, 8, 8), up_channels=(8, 8, 8, 8), first_kernel=3, head_hidden=(8, 8))
 SMALL_SCENES = SceneConfig(mushrooms=(3, 5))
@@ -34,6 +34,24 @@ def test_augmented_samples_are_deterministic_and_consistent():
     centres = a["points"].astype(np.float64) + a["residual"]
     for k in np.unique(a["instance"][a["instance"] >= 0]):
         assert np.ptp(centres[a["instance"] == k], axis=0).max() < 1e-5
+
+
+def test_a_fused_share_of_the_beds_are_scans_and_the_rest_stay_as_they_were():
+    def fused(config):
+        return np.array([scene_config(config, iteration_seed(config.seed, i)).visibility == "fused"
+                         for i in range(400)])
+
+    assert not fused(TrainConfig(scene=SMALL_SCENES)).any()
+    half = TrainConfig(scene=SMALL_SCENES, fused_share=0.5)
+    chosen = fused(half)
+    assert 0.4 < chosen.mean() < 0.6  # binomial(400, 0.5): outside this about once in 10^4 runs
+    # a bed the share leaves alone is the bed the run without it draws, point for point
+    kept = int(np.flatnonzero(~chosen)[0])
+    np.testing.assert_array_equal(augmented_sample(half, kept)["points"],
+                                  augmented_sample(TrainConfig(scene=SMALL_SCENES), kept)["points"])
+    scan = scene_config(half, iteration_seed(half.seed, int(np.flatnonzero(chosen)[0])))
+    assert (scan.visibility, scan.views, scan.mushrooms) == ("fused", (2, 6), SMALL_SCENES.mushrooms)
+    assert fused(TrainConfig(scene=SMALL_SCENES, fused_share=1.0)).all()
 
 
 def _row_of_point(coords: torch.Tensor, points: np.ndarray, voxel: float) -> np.ndarray:

@@ -1,8 +1,9 @@
 """Synthetic mushroom beds with full ground truth (paper Sec. 2), deterministic from a seed.
 
 A bed is casing soil, a few distractors and K mushrooms (the template scaled, deformed, tilted and
-stood on the soil without collisions), turned into a point cloud by one of two visibility models:
-hidden point removal from a near-overhead viewpoint (the paper's) or the virtual depth camera.
+stood on the soil without collisions), turned into a point cloud by one of its visibility models:
+hidden point removal from a near-overhead viewpoint (the paper's), the virtual depth camera, or that camera
+from several viewpoints with its frames merged as a scan is.
 """
 
 from __future__ import annotations
@@ -11,19 +12,22 @@ from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 import open3d as o3d
+from scipy import ndimage
 
 from capture.frames import CameraIntrinsics, backproject
-from capture.virtual import MeshScene, SensorModel, apply_sensor_model
+from capture.virtual import MeshScene, SensorModel, apply_sensor_model, to_depth_frame
 from common.geometry import look_at, transform_points, voxel_representatives
+from fusion.integrate import IntegrationConfig, merge_points
 from perception.cap import CAP_HEIGHT_RATIO, CAP_RADIUS_AT_UNIT_SCALE, cap_box, cap_rotation
 from perception.encoding import EncodingTargets, encode
 from perception.synthetic.template import RIM_RATIO, STEM_LENGTH_RATIO, STEM_RADIUS_RATIO, mushroom_template
 from perception.synthetic.terrain import (TERRAINS, Distractor, deform_along_normals, deform_heightfield_mesh,
                                           heightfield_mesh, random_distractor, soil_heightfield)
 
-VISIBILITY_MODELS = ("hpr", "camera", "katz")
-"""hpr: hidden point removal by z-buffer (fast); camera: the virtual depth camera; katz: the paper's
-spherical-flip operator (Open3D), slow, kept for reproducing the paper exactly."""
+VISIBILITY_MODELS = ("hpr", "camera", "fused", "katz")
+"""hpr: hidden point removal by z-buffer (fast); camera: the virtual depth camera; fused: the virtual
+depth camera from each of the bed's views, merged as a scan is (``fusion.integrate.merge_points``);
+katz: the paper's spherical-flip operator (Open3D), slow, kept for reproducing the paper exactly."""
 GENERATOR_VERSION = 3
 """Bumped whenever the same seed would give a different scene or the saved fields change (invalidates
 cached presets)."""
@@ -69,7 +73,11 @@ class SceneConfig:
     """How many viewpoints a bed is seen from, drawn per bed from [low, high]; their visible points are
     pooled, as in a cloud fused from several camera poses (stems, rims and cap sides that one overhead
     view hides). The views after the first look in from 15-40 degrees off nadir, spread around the bed;
-    the scene's ``viewpoint`` is the first. Only with ``hpr`` visibility."""
+    the scene's ``viewpoint`` is the first. Only with ``hpr`` and ``fused`` visibility."""
+    soil_holes: tuple[float, float] = (0.0, 0.0)
+    """Share of the bare soil's points lost in blotches a few centimetres across, drawn per bed from [low,
+    high]: dark casing soil returns no depth in patches, so a real scan's soil is full of holes, and caps
+    stand beside islands of soil. 0 0 draws nothing, so such beds stay as they were."""
     ground_cell: float = 0.004
     sensor: SensorModel = field(default_factory=SensorModel)
 
@@ -87,8 +95,10 @@ class SceneConfig:
             raise ValueError(f"cap height factors must satisfy 0 < low <= high, got {self.cap_height}")
         if any(int(count) != count for count in self.views) or not 1 <= self.views[0] <= self.views[1]:
             raise ValueError(f"view counts must satisfy 1 <= low <= high, got {self.views}")
-        if self.views[1] > 1 and self.visibility != "hpr":
-            raise ValueError(f"more than one view needs hpr visibility, not {self.visibility!r}")
+        if self.views[1] > 1 and self.visibility not in ("hpr", "fused"):
+            raise ValueError(f"more than one view needs hpr or fused visibility, not {self.visibility!r}")
+        if not 0 <= self.soil_holes[0] <= self.soil_holes[1] <= 1:
+            raise ValueError(f"soil hole shares must satisfy 0 <= low <= high <= 1, got {self.soil_holes}")
         if self.spacing <= 0 or self.bed_size <= 0:
             raise ValueError("spacing and bed size must be positive")
 
@@ -108,16 +118,20 @@ class BedMeshes:
     """(K, 3) true cap semi-axes (s_x, s_y, s_z) in metres."""
     terrain: str
 
-    def cap_of_points(self, points: np.ndarray, within: float) -> np.ndarray:
-        """Each point's mushroom (N,) when it lies within ``within`` metres of that mushroom's cap
-        surface, -1 otherwise: which points of a cloud made from this bed show a cap."""
-        scene = o3d.t.geometry.RaycastingScene()
+    def nearest_triangles(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The triangle nearest each point (N,) and the distance to it in metres (N,)."""
+        scene = o3d.t.geometry.RaycastingScene(nthreads=1)
         scene.add_triangles(o3d.core.Tensor(self.vertices.astype(np.float32)),
                             o3d.core.Tensor(self.triangles.astype(np.uint32)))
         points = np.ascontiguousarray(points, np.float32)
-        closest = scene.compute_closest_points(o3d.core.Tensor(points))
-        triangle = closest["primitive_ids"].numpy().astype(np.int64)
-        distance = np.linalg.norm(closest["points"].numpy() - points, axis=1)
+        closest = scene.compute_closest_points(o3d.core.Tensor(points), nthreads=1)
+        return (closest["primitive_ids"].numpy().astype(np.int64),
+                np.linalg.norm(closest["points"].numpy() - points, axis=1))
+
+    def cap_of_points(self, points: np.ndarray, within: float) -> np.ndarray:
+        """Each point's mushroom (N,) when it lies within ``within`` metres of that mushroom's cap
+        surface, -1 otherwise: which points of a cloud made from this bed show a cap."""
+        triangle, distance = self.nearest_triangles(points)
         on_cap = (distance <= within) & self.triangle_is_cap[triangle]
         return np.where(on_cap, self.triangle_instance[triangle], -1)
 
@@ -381,8 +395,11 @@ def visible_from(points: np.ndarray, normals: np.ndarray, eye: np.ndarray, targe
 
 def _visible_points(rng, bed: BedMeshes, config: SceneConfig, spacing: float, eye, target, extra_eyes=()):
     """Visible points at the scene's density and the triangle each came from: seen from ``eye`` and,
-    pooled with them, from each of ``extra_eyes`` (hpr only)."""
-    if config.visibility == "camera":
+    pooled with them, from each of ``extra_eyes`` (hpr and fused only)."""
+    if config.visibility == "fused":
+        points = _fused_points(rng, bed, config, spacing, [eye, *extra_eyes], target)
+        triangle = bed.nearest_triangles(points)[0]
+    elif config.visibility == "camera":
         intrinsics = CameraIntrinsics.realsense_d405()
         T_world_camera = look_at(eye, target)
         render = MeshScene(bed.vertices, bed.triangles).render(intrinsics, T_world_camera)
@@ -416,6 +433,37 @@ def _visible_points(rng, bed: BedMeshes, config: SceneConfig, spacing: float, ey
     return points[inside], triangle[inside]
 
 
+def _fused_points(rng, bed: BedMeshes, config: SceneConfig, spacing: float, eyes, target) -> np.ndarray:
+    """The points a scan of the bed gives: the virtual camera's noisy depth image from each eye, smoothed,
+    back-projected and merged into voxels of ``spacing`` as fusion merges frames. The poses are exact:
+    fusion registers views to well under the sensor's noise."""
+    intrinsics = CameraIntrinsics.realsense_d405()
+    meshes = MeshScene(bed.vertices, bed.triangles)
+    poses = np.array([look_at(eye, target) for eye in eyes])
+    frames = [to_depth_frame(apply_sensor_model(meshes.render(intrinsics, pose), config.sensor, rng), intrinsics,
+                             config.sensor, pose) for pose in poses]
+    return merge_points(frames, poses, IntegrationConfig(voxel=spacing)).points.astype(np.float64)
+
+
+SOIL_HOLE_CELL = 0.008
+"""Cell of the random field whose high values are a bed's soil holes, metres; smoothed over
+``SOIL_HOLE_SMOOTHING`` cells, its blotches are 2-5 cm across, as the holes in the real cloud's soil."""
+SOIL_HOLE_SMOOTHING = 1.5
+
+
+def _outside_soil_holes(rng, config: SceneConfig, points: np.ndarray, soil: np.ndarray) -> np.ndarray:
+    """Which points stay: all but the soil's points under the blotches of a smooth random field, a
+    share drawn from ``config.soil_holes`` of the soil's points."""
+    if config.soil_holes[1] == 0 or not soil.any():
+        return np.ones(len(points), bool)
+    share = rng.uniform(*config.soil_holes)
+    cells = int(np.ceil(config.bed_size / SOIL_HOLE_CELL)) + 2
+    field = ndimage.gaussian_filter(rng.standard_normal((cells, cells)), SOIL_HOLE_SMOOTHING)
+    where = (points[:, :2].T + config.bed_size / 2) / SOIL_HOLE_CELL
+    value = ndimage.map_coordinates(field, where, order=1, mode="nearest")
+    return ~soil | (value <= np.quantile(value[soil], 1.0 - share))
+
+
 def generate_scene(seed: int, config: SceneConfig = SceneConfig()) -> SyntheticScene:
     """One synthetic bed; the same seed and config give the same scene on any machine."""
     rng = np.random.default_rng(seed)
@@ -423,6 +471,8 @@ def generate_scene(seed: int, config: SceneConfig = SceneConfig()) -> SyntheticS
     spacing = config.spacing * rng.uniform(*config.jitter)
     eye, target = _viewpoint(rng, config)
     points, triangle = _visible_points(rng, bed, config, spacing, eye, target, _extra_viewpoints(rng, config, target))
+    keep = _outside_soil_holes(rng, config, points, bed.triangle_instance[triangle] < 0)
+    points, triangle = points[keep], triangle[keep]
     instance = bed.triangle_instance[triangle]
     is_cap = bed.triangle_is_cap[triangle]
     targets = encode(points, instance, is_cap, bed.centers, bed.rotations, bed.scales)

@@ -180,8 +180,8 @@ CLUSTERING = ("meanshift", "dbscan")
 """perception.instances.METHODS: how voted centres are grouped into caps."""
 CAMERAS = ("realsense", "oak", "virtual")
 """pipeline.sources.CAMERAS: the depth cameras ``record`` and ``live`` read."""
-VISIBILITY = ("hpr", "camera", "katz")
-"""perception.synthetic.scene.VISIBILITY_MODELS: how a synthetic bed's hidden points are removed."""
+VISIBILITY = ("hpr", "camera", "fused", "katz")
+"""perception.synthetic.scene.VISIBILITY_MODELS: how a synthetic bed becomes points."""
 
 
 # ---- the model and torch

@@ -21,8 +21,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mushrooms", type=parse_mushroom_count, nargs=2, default=(5, 45), metavar=("LOW", "HIGH"),
                         help="mushrooms per scene, inclusive range (default 5 45)")
     parser.add_argument("--visibility", choices=VISIBILITY, default="hpr",
-                        help="hpr: hidden point removal (z-buffer); camera: virtual depth camera; "
-                             "katz: the paper's spherical-flip operator (slow)")
+                        help="hpr: hidden point removal (z-buffer); camera: virtual depth camera; fused: that "
+                             "camera's frame smoothed and merged as fusion does; katz: the paper's spherical-flip "
+                             "operator (slow)")
     parser.add_argument("--spacing", type=parse_spacing, help=f"point spacing in metres (default {SPACING_HELP})")
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--rrd", help="also log the scenes to this Rerun recording")

@@ -35,6 +35,7 @@ TRAIN_FLAGS = {
     "point_dropout": {"parse": at_most(non_negative(float), 0.99, " (a fraction of the points)"), "metavar": RANGE},
     "tilt_deg": {"parse": at_most(non_negative(float), 90.0, " degrees")},
     "noise": {"parse": at_most(non_negative(float), 0.01, " metres (0.0005 is half a millimetre)")},
+    "fused_share": {"parse": at_most(non_negative(float), 1.0, " (a share of the beds)"), "metavar": "SHARE"},
 }
 """Validators and names of TrainConfig's flags where its field's type and name are not enough
 (pipeline.flags.FLAG_KEYS)."""
@@ -49,9 +50,16 @@ SCENE_FLAGS = {
     "cap_height": {"name": "cap-height", "parse": positive(float), "metavar": RANGE,
                    "help": "Factor on each cap's height, from [low, high]: below 1 makes the shallower "
                            "domes of real beds (1 1: the template's, the paper's)."},
+    "visibility": {"name": "visibility", "metavar": "MODEL",
+                   "help": "How a bed becomes points: hpr (hidden point removal, the paper's), camera (the "
+                           "virtual depth camera), fused (that camera from each view, merged as a scan is; "
+                           "--spacing is then the merge voxel) or katz."},
     "views": {"name": "views", "parse": positive(int), "metavar": RANGE,
               "help": "Viewpoints each training bed is seen from, from [low, high], their points pooled as "
                       "in a fused cloud (1 1: one overhead view, the paper's)."},
+    "soil_holes": {"name": "soil-holes", "parse": at_most(non_negative(float), 1.0, " (a share of the soil)"),
+                   "metavar": RANGE, "help": "Share of the bare soil lost in blotches a few centimetres across, "
+                   "from [low, high], as dark casing soil leaves holes in a real scan (0 0: none)."},
     "cluster_probability": {"name": "cluster-probability", "parse": at_most(non_negative(float), 1.0),
                             "metavar": "P", "help": "Chance that a cap is placed touching an earlier one."},
     "cluster_spacing": {"name": "cluster-spacing", "parse": positive(float), "metavar": RANGE,
@@ -103,7 +111,7 @@ def _check(args: argparse.Namespace) -> None:
     ranges = {"--scale-jitter": args.scale_jitter, "--point-dropout": args.point_dropout,
               "--spacing-jitter": args.scene_jitter, "--cap-scale": args.scene_scale,
               "--cap-height": args.scene_cap_height, "--views": args.scene_views,
-              "--cluster-spacing": args.scene_cluster_spacing}
+              "--cluster-spacing": args.scene_cluster_spacing, "--soil-holes": args.scene_soil_holes}
     for flag, (low, high) in ranges.items():
         if low > high:
             raise CliError(f"{flag} wants LOW HIGH with LOW <= HIGH, got {low} {high}")
@@ -115,7 +123,10 @@ def run(args: argparse.Namespace) -> int:
     from perception.train import TrainingError, train
 
     _check(args)
-    config = train_config(args)
+    try:
+        config = train_config(args)
+    except ValueError as error:  # flags that parse alone but make no scene together
+        raise CliError(str(error)) from None
     if config.averaging_start is not None and config.averaging_start >= config.iterations:
         raise CliError(f"--average-from {args.average_from} leaves no iteration of {args.iterations} to average")
     new_folder = not Path(args.out).exists()
