@@ -81,6 +81,13 @@ class MeshScene:
         cos_incidence *= self._inverse_length(intrinsics)
         return Render(depth, triangle_ids, cos_incidence)
 
+    def nearest_triangles(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The triangle nearest each point (N,) and the distance to it in metres (N,)."""
+        points = np.ascontiguousarray(points, np.float32)
+        closest = self._scene.compute_closest_points(o3d.core.Tensor(points), nthreads=self._threads)
+        return (closest["primitive_ids"].numpy().astype(np.int64),
+                np.linalg.norm(closest["points"].numpy() - points, axis=1))
+
     def _inverse_length(self, intrinsics: CameraIntrinsics) -> np.ndarray:
         """1 / |direction| per pixel: the rays have unit z in the camera frame, so the hit distance is the
         depth, and rotating them does not change their length."""

@@ -18,9 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
+from common.files import write_atomically
+
 RECORDINGS_DIR = Path(__file__).resolve().parent.parent / "recordings"
 START_NS = 1_767_225_600_000_000_000
-"""2026-01-01 00:00 UTC: the recordings' capture clock starts at a fixed, real date."""
+"""Where every recording's capture clock starts (nanoseconds since the Unix epoch): a fixed, real instant,
+so a remake writes the same timestamps."""
 
 
 @dataclass(frozen=True)
@@ -110,7 +113,7 @@ def make_recording(recording: Recording, out_dir: Path, model) -> tuple[Path, li
         summary = run_chain(source, model, RunConfig(), Outputs(record=target, name=recording.name, quiet=True),
                             sensors=cameras)
     documents = [detection.document for detection in summary.detections]
-    expected_path(target).write_text(json.dumps(documents, indent=1) + "\n")
+    write_atomically(expected_path(target), json.dumps(documents, indent=1) + "\n")
     return target, documents
 
 
@@ -145,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             report = compare(json.loads(previous_text), documents)
             if report.passed:  # within the check's tolerances: keep the file, not last-digit noise
-                sidecar.write_text(previous_text)
+                write_atomically(sidecar, previous_text)
             verdict = "expected detections unchanged" if report.passed else \
                 "EXPECTED DETECTIONS CHANGED:\n" + report.table()
         print(f"{target.name}: {size:.1f} MB, caps per unit {_caps_summary(documents)}; {verdict}")

@@ -4,6 +4,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 
+from capture.virtual import MeshScene
 from perception.cap import CAP_HEIGHT_RATIO, CAP_RADIUS_AT_UNIT_SCALE, tilt_deg
 from perception.encoding import encode
 from perception.synthetic.dataset import BED_SETS, load_preset, scene_seeds
@@ -175,7 +176,8 @@ def test_a_fused_bed_is_its_noisy_views_merged_and_labelled_by_the_surface_each_
     config = SceneConfig(visibility="fused", views=(3, 3), spacing=0.002, mushrooms=(15, 15))
     scene = generate_scene(5, config)
     bed = build_bed(np.random.default_rng(5), config)
-    triangle, distance = bed.nearest_triangles(scene.points)
+    meshes = MeshScene(bed.vertices, bed.triangles)
+    triangle, distance = meshes.nearest_triangles(scene.points)
     # the sensor's range noise is about 1.5 mm a pixel at this range; smoothing and merging views average it down
     assert np.median(distance) < 0.001 and np.percentile(distance, 90) < 0.003
     assert np.array_equal(scene.instance, bed.triangle_instance[triangle])
@@ -187,7 +189,7 @@ def test_a_fused_bed_is_its_noisy_views_merged_and_labelled_by_the_surface_each_
     assert (scene.visible_cap_points > 0).sum() >= 14
     # every point of a merged voxel is the mean of what the views saw there: none is a raw noisy pixel
     single = generate_scene(5, SceneConfig(visibility="camera", spacing=0.002, mushrooms=(15, 15)))
-    single_distance = bed.nearest_triangles(single.points)[1]
+    single_distance = meshes.nearest_triangles(single.points)[1]
     assert np.median(distance) < 0.7 * np.median(single_distance)
 
 

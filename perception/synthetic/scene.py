@@ -44,8 +44,8 @@ class SceneConfig:
     cap_height: tuple[float, float] = (1.0, 1.0)
     """Factor on each mushroom's vertical scale (cap, rim and stem alike), on top of ``axis_factor``. The
     template's dome is 2/3 as high as wide; the labelled real caps of ../shared/real/ are shallower
-    (sphere fits of the non-partial caps: visible height over rim radius 0.46 median, 0.33-0.70 from the 10th to the 90th
-    percentile), so real-like beds draw it below 1. The pose fit's height-ratio gate
+    (sphere fits of the non-partial caps: visible height over rim radius 0.46 median, 0.33-0.70 from
+    the 10th to the 90th percentile), so real-like beds draw it below 1. The pose fit's height-ratio gate
     (``perception.pose.HEIGHT_RATIO_RANGE``) is the template's."""
     max_tilt_deg: float = 45.0
     cluster_probability: float = 0.35
@@ -118,20 +118,10 @@ class BedMeshes:
     """(K, 3) true cap semi-axes (s_x, s_y, s_z) in metres."""
     terrain: str
 
-    def nearest_triangles(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The triangle nearest each point (N,) and the distance to it in metres (N,)."""
-        scene = o3d.t.geometry.RaycastingScene(nthreads=1)
-        scene.add_triangles(o3d.core.Tensor(self.vertices.astype(np.float32)),
-                            o3d.core.Tensor(self.triangles.astype(np.uint32)))
-        points = np.ascontiguousarray(points, np.float32)
-        closest = scene.compute_closest_points(o3d.core.Tensor(points), nthreads=1)
-        return (closest["primitive_ids"].numpy().astype(np.int64),
-                np.linalg.norm(closest["points"].numpy() - points, axis=1))
-
     def cap_of_points(self, points: np.ndarray, within: float) -> np.ndarray:
         """Each point's mushroom (N,) when it lies within ``within`` metres of that mushroom's cap
         surface, -1 otherwise: which points of a cloud made from this bed show a cap."""
-        triangle, distance = self.nearest_triangles(points)
+        triangle, distance = MeshScene(self.vertices, self.triangles).nearest_triangles(points)
         on_cap = (distance <= within) & self.triangle_is_cap[triangle]
         return np.where(on_cap, self.triangle_instance[triangle], -1)
 
@@ -397,8 +387,9 @@ def _visible_points(rng, bed: BedMeshes, config: SceneConfig, spacing: float, ey
     """Visible points at the scene's density and the triangle each came from: seen from ``eye`` and,
     pooled with them, from each of ``extra_eyes`` (hpr and fused only)."""
     if config.visibility == "fused":
-        points = _fused_points(rng, bed, config, spacing, [eye, *extra_eyes], target)
-        triangle = bed.nearest_triangles(points)[0]
+        meshes = MeshScene(bed.vertices, bed.triangles)
+        points = _fused_points(rng, meshes, config, spacing, [eye, *extra_eyes], target)
+        triangle = meshes.nearest_triangles(points)[0]
     elif config.visibility == "camera":
         intrinsics = CameraIntrinsics.realsense_d405()
         T_world_camera = look_at(eye, target)
@@ -433,12 +424,11 @@ def _visible_points(rng, bed: BedMeshes, config: SceneConfig, spacing: float, ey
     return points[inside], triangle[inside]
 
 
-def _fused_points(rng, bed: BedMeshes, config: SceneConfig, spacing: float, eyes, target) -> np.ndarray:
-    """The points a scan of the bed gives: the virtual camera's noisy depth image from each eye, smoothed,
-    back-projected and merged into voxels of ``spacing`` as fusion merges frames. The poses are exact:
-    fusion registers views to well under the sensor's noise."""
+def _fused_points(rng, meshes: MeshScene, config: SceneConfig, spacing: float, eyes, target) -> np.ndarray:
+    """The points a scan of the bed's ``meshes`` gives: the virtual camera's noisy depth image from each
+    eye, smoothed, back-projected and merged into voxels of ``spacing`` as fusion merges frames. The
+    poses are exact: fusion registers views to well under the sensor's noise."""
     intrinsics = CameraIntrinsics.realsense_d405()
-    meshes = MeshScene(bed.vertices, bed.triangles)
     poses = np.array([look_at(eye, target) for eye in eyes])
     frames = [to_depth_frame(apply_sensor_model(meshes.render(intrinsics, pose), config.sensor, rng), intrinsics,
                              config.sensor, pose) for pose in poses]
