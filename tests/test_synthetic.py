@@ -1,8 +1,11 @@
 """Synthetic beds: the template matches the cap model, scenes are deterministic and their ground truth agrees."""
 
+import dataclasses
+
 import numpy as np
 import open3d as o3d
 import pytest
+from scipy import ndimage
 
 from capture.virtual import MeshScene
 from perception.cap import CAP_HEIGHT_RATIO, CAP_RADIUS_AT_UNIT_SCALE, tilt_deg
@@ -214,6 +217,36 @@ def test_soil_holes_take_blotches_of_bare_soil_and_leave_the_mushrooms_alone():
     assert spacing[1] < 1.05 * spacing[0]
     with pytest.raises(ValueError, match="soil hole"):
         SceneConfig(soil_holes=(0.5, 1.5))
+
+
+def test_soil_lumps_are_rough_mounds_of_soil_a_few_centimetres_across():
+    from perception.synthetic.terrain import SOIL_LUMP_HEIGHT, SOIL_LUMP_ROUGHNESS, Heightfield, add_soil_lumps
+
+    xs = np.linspace(-0.25, 0.25, 126)
+    flat = Heightfield(xs, xs.copy(), np.zeros((126, 126)))
+    rng = np.random.default_rng(4)
+    assert add_soil_lumps(rng, flat, 0) is flat and rng.random() == np.random.default_rng(4).random()
+    raised = add_soil_lumps(np.random.default_rng(4), flat, 6).height
+    labels, count = ndimage.label(raised > 0.002)
+    assert 1 <= count <= 6  # one mound per lump, where two do not run together
+    sizes = ndimage.sum_labels(np.ones_like(raised), labels, range(1, count + 1)) * 0.004**2
+    assert (2 * np.sqrt(sizes / np.pi) < 0.08).all() and (2 * np.sqrt(sizes / np.pi) > 0.015).any()
+    assert SOIL_LUMP_HEIGHT[0] < raised.max() < SOIL_LUMP_HEIGHT[1] * (1 + 3 * SOIL_LUMP_ROUGHNESS)
+    # rough, not a smooth dome: a smooth mound's slopes are monotone, which a 3x3 median leaves as they
+    # are; crumbs are local bumps and dips that it removes, at most of the lumps' cells
+    crumbs = np.abs(raised - ndimage.median_filter(raised, 3))[labels > 0]
+    assert np.median(crumbs) > 0.004 * raised.max()
+    # a bed's soil mesh carries them: the same soil (drawn first) stands up to a few centimetres higher in
+    # up to that many patches; beyond them only the soil's small deformations differ (+-2 mm bumps)
+    bare = SceneConfig(mushrooms=(0, 0), distractors=(0, 0))
+    plain = build_bed(np.random.default_rng(6), bare).vertices[:, 2]
+    lumpy = build_bed(np.random.default_rng(6), dataclasses.replace(bare, soil_lumps=(12, 12))).vertices[:, 2]
+    patches, count = ndimage.label((lumpy - plain > 0.004).reshape(126, 126))
+    cells = ndimage.sum_labels(np.ones(patches.shape), patches, range(1, count + 1))
+    assert 1 <= (cells >= 20).sum() <= 12  # patches 2 cm across or more; crumbs at their edges aside
+    assert (lumpy - plain).max() > SOIL_LUMP_HEIGHT[0] and np.quantile(np.abs(lumpy - plain), 0.5) < 0.002
+    with pytest.raises(ValueError, match="soil lump"):
+        SceneConfig(soil_lumps=(3, 1))
 
 
 def test_encoding_follows_the_definitions():

@@ -21,8 +21,9 @@ from fusion.integrate import IntegrationConfig, merge_points
 from perception.cap import CAP_HEIGHT_RATIO, CAP_RADIUS_AT_UNIT_SCALE, cap_box, cap_rotation
 from perception.encoding import EncodingTargets, encode
 from perception.synthetic.template import RIM_RATIO, STEM_LENGTH_RATIO, STEM_RADIUS_RATIO, mushroom_template
-from perception.synthetic.terrain import (TERRAINS, Distractor, deform_along_normals, deform_heightfield_mesh,
-                                          heightfield_mesh, random_distractor, soil_heightfield)
+from perception.synthetic.terrain import (TERRAINS, Distractor, add_soil_lumps, deform_along_normals,
+                                          deform_heightfield_mesh, heightfield_mesh, random_distractor,
+                                          soil_heightfield)
 
 VISIBILITY_MODELS = ("hpr", "camera", "fused", "katz")
 """hpr: hidden point removal by z-buffer (fast); camera: the virtual depth camera; fused: the virtual
@@ -78,6 +79,10 @@ class SceneConfig:
     """Share of the bare soil's points lost in blotches a few centimetres across, drawn per bed from [low,
     high]: dark casing soil returns no depth in patches, so a real scan's soil is full of holes, and caps
     stand beside islands of soil. 0 0 draws nothing, so such beds stay as they were."""
+    soil_lumps: tuple[int, int] = (0, 0)
+    """How many casing-soil lumps a bed has, drawn from [low, high]: rough bare-soil mounds 2-6 cm
+    across (``terrain.add_soil_lumps``), as a real bed's casing shows and as tall as a small cap. They
+    are soil, so a detector learns that a mound alone is not a cap. 0 0 draws nothing."""
     ground_cell: float = 0.004
     sensor: SensorModel = field(default_factory=SensorModel)
 
@@ -99,6 +104,8 @@ class SceneConfig:
             raise ValueError(f"more than one view needs hpr or fused visibility, not {self.visibility!r}")
         if not 0 <= self.soil_holes[0] <= self.soil_holes[1] <= 1:
             raise ValueError(f"soil hole shares must satisfy 0 <= low <= high <= 1, got {self.soil_holes}")
+        if any(int(count) != count for count in self.soil_lumps) or not 0 <= self.soil_lumps[0] <= self.soil_lumps[1]:
+            raise ValueError(f"soil lump counts must satisfy 0 <= low <= high, got {self.soil_lumps}")
         if self.spacing <= 0 or self.bed_size <= 0:
             raise ValueError("spacing and bed size must be positive")
 
@@ -276,6 +283,8 @@ def build_bed(rng: np.random.Generator, config: SceneConfig) -> BedMeshes:
     """Soil, distractors and mushrooms as meshes, with each mushroom's true pose."""
     terrain = config.terrain or TERRAINS[int(rng.integers(len(TERRAINS)))]
     field = soil_heightfield(rng, config.bed_size, config.ground_cell, terrain)
+    if config.soil_lumps[1] > 0:  # drawn only when asked, so other configs keep their beds
+        field = add_soil_lumps(rng, field, int(rng.integers(config.soil_lumps[0], config.soil_lumps[1] + 1)))
     ground_vertices, ground_triangles = heightfield_mesh(field)
     ground_vertices = deform_heightfield_mesh(rng, field, ground_vertices, count=24, magnitude=0.002,
                                               radius=(0.004, 0.015))

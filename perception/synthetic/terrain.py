@@ -83,6 +83,38 @@ def soil_heightfield(rng: np.random.Generator, size: float, cell: float, kind: s
     return Heightfield(xs, xs.copy(), height - height.mean())
 
 
+SOIL_LUMP_WIDTH = (0.008, 0.02)
+"""Standard deviation of a casing-soil lump's blobs across, metres: lumps 2-6 cm across."""
+SOIL_LUMP_HEIGHT = (0.005, 0.02)
+"""Height of a lump's main blob, metres: as high as a small cap stands."""
+SOIL_LUMP_ROUGHNESS = 0.25
+"""Crumbs on a lump, as a share of its height (cell-scale noise): a lump is rough, a cap smooth."""
+
+
+def add_soil_lumps(rng: np.random.Generator, field: Heightfield, count: int) -> Heightfield:
+    """``field`` with ``count`` casing-soil lumps raised on it: rough mounds 2-6 cm across, each two or
+    three overlapping blobs, so irregular in outline. A real bed's casing stands up in such lumps,
+    and a detector that has never seen one takes a bare-soil mound for a cap."""
+    if count == 0:
+        return field
+    gx, gy = np.meshgrid(field.xs, field.ys)
+    half = field.xs[-1]
+    lumps = np.zeros(field.height.shape)
+    blobs = rng.integers(2, 4, count)
+    owner = np.repeat(np.arange(count), blobs)
+    centre = rng.uniform(-half, half, (count, 2))[owner] + rng.normal(0, SOIL_LUMP_WIDTH[0], (len(owner), 2))
+    width = rng.uniform(*SOIL_LUMP_WIDTH, (len(owner), 2))
+    angle = rng.uniform(0, np.pi, len(owner))
+    height = rng.uniform(*SOIL_LUMP_HEIGHT, count)[owner] * rng.uniform(0.5, 1.0, len(owner))
+    cos, sin = np.cos(angle), np.sin(angle)
+    for blob in range(len(owner)):  # a few blobs; each is vectorised over the grid
+        dx, dy = gx - centre[blob, 0], gy - centre[blob, 1]
+        u, v = (cos[blob] * dx + sin[blob] * dy) / width[blob, 0], (cos[blob] * dy - sin[blob] * dx) / width[blob, 1]
+        lumps = np.maximum(lumps, height[blob] * np.exp(-0.5 * (u * u + v * v)))
+    crumbs = SOIL_LUMP_ROUGHNESS * np.abs(_smooth_noise(rng, field.height.shape, 0.7))
+    return Heightfield(field.xs, field.ys, field.height + lumps * (1.0 + crumbs))
+
+
 def heightfield_mesh(field: Heightfield) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (V, 3) and upward-facing triangles (T, 3) of a heightfield."""
     n_y, n_x = field.height.shape

@@ -60,6 +60,9 @@ SCENE_FLAGS = {
     "soil_holes": {"name": "soil-holes", "parse": at_most(non_negative(float), 1.0, " (a share of the soil)"),
                    "metavar": RANGE, "help": "Share of the bare soil lost in blotches a few centimetres across, "
                    "from [low, high], as dark casing soil leaves holes in a real scan (0 0: none)."},
+    "soil_lumps": {"name": "soil-lumps", "parse": non_negative(int), "metavar": RANGE,
+                   "help": "Casing-soil lumps per bed, from [low, high]: rough bare-soil mounds 2-6 cm across "
+                           "that are not caps, as a real bed's casing shows (0 0: none)."},
     "cluster_probability": {"name": "cluster-probability", "parse": at_most(non_negative(float), 1.0),
                             "metavar": "P", "help": "Chance that a cap is placed touching an earlier one."},
     "cluster_spacing": {"name": "cluster-spacing", "parse": positive(float), "metavar": RANGE,
@@ -111,7 +114,8 @@ def _check(args: argparse.Namespace) -> None:
     ranges = {"--scale-jitter": args.scale_jitter, "--point-dropout": args.point_dropout,
               "--spacing-jitter": args.scene_jitter, "--cap-scale": args.scene_scale,
               "--cap-height": args.scene_cap_height, "--views": args.scene_views,
-              "--cluster-spacing": args.scene_cluster_spacing, "--soil-holes": args.scene_soil_holes}
+              "--cluster-spacing": args.scene_cluster_spacing, "--soil-holes": args.scene_soil_holes,
+              "--soil-lumps": args.scene_soil_lumps}
     for flag, (low, high) in ranges.items():
         if low > high:
             raise CliError(f"{flag} wants LOW HIGH with LOW <= HIGH, got {low} {high}")
