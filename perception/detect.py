@@ -66,10 +66,10 @@ def at_training_density(model: MushroomNet, points: np.ndarray) -> np.ndarray:
 
 OPERATING_SPACING = 0.0035
 """Metres: beyond this point spacing caps under 30 mm across are found less reliably (bench/range.py,
-caps 15-30 mm: AP@25 99.9 % at 3 mm, 82.3 % at 4 mm, 64.4 % at 5 mm)."""
+caps 15-30 mm: AP@25 95.2 % at 3 mm, 82.3 % at 4 mm, 62.9 % at 5 mm)."""
 OPERATING_DIAMETER = 0.080
 """Metres: caps wider than this are found, but their boxes less reliably (bench/range.py, caps 80-100 mm:
-AP@50 83-95 %; over 100 mm caps are split or missed)."""
+AP@25 95-100 %, AP@50 82-94 %; over 100 mm on clouds sampled every 1-3 mm caps are split or missed)."""
 NEIGHBOUR_PER_SPACING = 0.645
 """Median distance from a point of a synthetic bed to its nearest neighbour, over the bed's point
 spacing (1.94 mm on val50's 3 mm beds, 3.24 mm on the same beds at 5 mm)."""
