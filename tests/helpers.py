@@ -2,6 +2,7 @@
 
 import collections
 
+import numpy as np
 from rerun.chunk import RrdReader
 
 
@@ -62,8 +63,6 @@ def rrd_values(path, entity: str, component: str) -> list[tuple[dict[str, int], 
     return sorted(rows, key=lambda row: row[0].get("log_time", -1))
 
 
-def rerun_matrix(value) -> "np.ndarray":
+def rerun_matrix(value) -> np.ndarray:
     """A Transform3D:mat3x3 instance (Rerun stores 3x3 matrices column by column) as a 3x3 array."""
-    import numpy as np
-
     return np.asarray(value, np.float64).reshape(3, 3).T
