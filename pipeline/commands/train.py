@@ -111,14 +111,13 @@ def _check(args: argparse.Namespace) -> None:
         raise CliError(f"unknown network {args.network!r}; choose one of {sorted(NETWORK_PRESETS)}")
     if args.init_weights and not args.resume and not Path(args.init_weights).is_file():
         raise CliError(f"--init: no weights file at {args.init_weights}")
-    ranges = {"--scale-jitter": args.scale_jitter, "--point-dropout": args.point_dropout,
-              "--spacing-jitter": args.scene_jitter, "--cap-scale": args.scene_scale,
-              "--cap-height": args.scene_cap_height, "--views": args.scene_views,
-              "--cluster-spacing": args.scene_cluster_spacing, "--soil-holes": args.scene_soil_holes,
-              "--soil-lumps": args.scene_soil_lumps}
-    for flag, (low, high) in ranges.items():
+    ranges = [(spec.get("name", key.replace("_", "-")), prefix + key)
+              for prefix, flags in (("", TRAIN_FLAGS), (SCENE, SCENE_FLAGS))
+              for key, spec in flags.items() if spec.get("metavar") == RANGE]
+    for name, dest in ranges:
+        low, high = getattr(args, dest)
         if low > high:
-            raise CliError(f"{flag} wants LOW HIGH with LOW <= HIGH, got {low} {high}")
+            raise CliError(f"--{name} wants LOW HIGH with LOW <= HIGH, got {low} {high}")
     if any(later <= earlier for earlier, later in zip(args.milestones, args.milestones[1:])):
         raise CliError(f"--milestones must increase, got {' '.join(map(str, args.milestones))}")
 
