@@ -11,7 +11,8 @@ sphere-fit axis (centroid minus sphere centre) and the detector's axis; and the 
 bench would score: the detector against the PCA axis, and PCA against the sphere fit. Then the
 relative error of the footprint radius (the radius of a circle with the area of the convex hull of the
 cap's points seen from above the bed) and of the detector's radius against the true radius, and of
-the detector's radius against the footprint radius, as the real-cloud bench scores it.
+the detector's radius against the footprint radius, as the real-cloud bench scores it, each with the
+median of its signed errors (above 0: the first radius is the larger).
 Usage: python bench/label_quality.py [--beds 10]
 """
 
@@ -61,6 +62,12 @@ def describe(name: str, values: list[float], scale: float = 1.0, digits: int = 1
             f"{np.percentile(values, 90):.{digits}f} |")
 
 
+def describe_signed(name: str, relative: list[float]) -> str:
+    """``describe``'s row of the sizes of relative errors (in %), and the median of their signs kept:
+    above 0, the first radius is larger."""
+    return describe(name, np.abs(relative), 100)[:-1] + f"| {100 * np.median(relative):+.1f} |"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--beds", type=int, default=10)
@@ -87,7 +94,7 @@ def main() -> None:
             angles["sphere"].append(float(tilt_deg(sphere, truth)))
             angles["pca_sphere"].append(float(tilt_deg(pca, sphere)))
             true_radius, footprint = bed.scales[k, :2].mean(), footprint_radius(fused.points[mine])
-            radius_errors["footprint"].append(abs(footprint - true_radius) / true_radius)
+            radius_errors["footprint"].append((footprint - true_radius) / true_radius)
             distance = np.linalg.norm(caps.centers - bed.centers[k], axis=1) if len(caps) else np.array([np.inf])
             if distance.min() < 0.5 * bed.scales[k, 0]:
                 nearest = int(distance.argmin())
@@ -95,8 +102,8 @@ def main() -> None:
                 angles["detector"].append(float(tilt_deg(found, truth)))
                 angles["detector_pca"].append(float(tilt_deg(found, pca)))
                 radius = caps.radii[nearest]
-                radius_errors["detector"].append(abs(radius - true_radius) / true_radius)
-                radius_errors["detector_footprint"].append(abs(radius - footprint) / footprint)
+                radius_errors["detector"].append((radius - true_radius) / true_radius)
+                radius_errors["detector_footprint"].append((radius - footprint) / footprint)
         print(f"bed {seed}: {len(angles['pca'])} caps with {LABELLED_POINTS}+ visible points so far", flush=True)
     print(f"\n{args.beds} beds (seeds 100-{99 + args.beds}), 18 views; {len(angles['pca'])} caps labelled, "
           f"{len(angles['detector'])} of them detected\n")
@@ -107,12 +114,12 @@ def main() -> None:
     print(describe("detector against the truth", angles["detector"]))
     print(describe("detector against the PCA axis (what bench/real.py scores)", angles["detector_pca"]))
     print(describe("PCA against the sphere fit (the labels' own check)", angles["pca_sphere"]))
-    print("\n| radius, relative error | mean (%) | median (%) | 90th percentile (%) |")
-    print("|---|---|---|---|")
-    print(describe("footprint radius against the truth", radius_errors["footprint"], 100))
-    print(describe("detector against the truth", radius_errors["detector"], 100))
-    print(describe("detector against the footprint radius (what bench/real.py scores)",
-                   radius_errors["detector_footprint"], 100))
+    print("\n| radius, relative error | mean (%) | median (%) | 90th percentile (%) | median signed (%) |")
+    print("|---|---|---|---|---|")
+    print(describe_signed("footprint radius against the truth", radius_errors["footprint"]))
+    print(describe_signed("detector against the truth", radius_errors["detector"]))
+    print(describe_signed("detector against the footprint radius (what bench/real.py scores)",
+                          radius_errors["detector_footprint"]))
 
 
 if __name__ == "__main__":

@@ -18,7 +18,7 @@ import time  # noqa: E402
 import torch  # noqa: E402
 
 from perception.cap import CAP_RADIUS_AT_UNIT_SCALE  # noqa: E402
-from perception.detect import DEFAULT_WEIGHTS, find_caps, predict  # noqa: E402
+from perception.detect import DEFAULT_WEIGHTS, READINGS, find_caps, predict  # noqa: E402
 from perception.cap import Caps  # noqa: E402
 from perception.evaluate import evaluate  # noqa: E402
 from perception.synthetic.dataset import ground_truth_mask  # noqa: E402
@@ -29,10 +29,10 @@ from pipeline.process import reuse_freed_memory  # noqa: E402
 DIAMETER_BINS_MM = ((15, 30), (30, 45), (45, 60), (60, 80), (80, 100), (100, 120))
 
 
-def score(model, scenes) -> tuple[float, float, int]:
+def score(model, scenes, readings: int) -> tuple[float, float, int]:
     preds, gts = [], []
     for scene in scenes:
-        _, fit = find_caps(predict(model, scene.points), model.config.voxel)
+        _, fit = find_caps(predict(model, scene.points, readings=readings), model.config.voxel)
         preds.append(fit)
         visible = ground_truth_mask(scene)
         gts.append(Caps(scene.centers[visible], scene.rotations[visible], scene.scales[visible]))
@@ -47,11 +47,14 @@ def main() -> None:
     parser.add_argument("--diameters", type=int, nargs="+", help="only the bins starting at these diameters (mm)")
     parser.add_argument("--model", type=Path, default=DEFAULT_WEIGHTS)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--readings", type=int, default=READINGS, help=f"turned readings averaged (default {READINGS}, "
+                        "as detect reads)")
     args = parser.parse_args()
     reuse_freed_memory()
     torch.set_num_threads(args.threads)
     model, _ = load_weights(args.model)
-    print(f"model: {args.model}; {args.beds} beds per cell, 5-25 round caps each, MeanShift; AP@25 / AP@50 "
+    print(f"model: {args.model}, {args.readings} readings; {args.beds} beds per cell, 5-25 round caps each, "
+          "MeanShift; AP@25 / AP@50 "
           "(caps)\n")
     print("| cap diameter | " + " | ".join(f"{s:g} mm spacing" for s in args.spacings) + " |")
     print("|---|" + "---|" * len(args.spacings))
@@ -65,7 +68,7 @@ def main() -> None:
         for spacing in args.spacings:
             config = SceneConfig(mushrooms=(5, 25), scale=scale, axis_factor=(1.0, 1.0), spacing=spacing / 1000)
             scenes = [generate_scene(int(1000 * high + seed), config) for seed in range(args.beds)]
-            ap25, ap50, caps = score(model, scenes)
+            ap25, ap50, caps = score(model, scenes, args.readings)
             cells.append(f"{100 * ap25:.1f} / {100 * ap50:.1f} % ({caps})")
         print(f"| {low}-{high} mm | " + " | ".join(cells) + " |", flush=True)
     print(f"\n{time.perf_counter() - started:.0f} s")

@@ -136,7 +136,8 @@ def pair_errors(preds: Caps, labels: Caps, pairs: np.ndarray) -> dict:
             "center_mm": _stats(1000 * np.linalg.norm(offset, axis=1)),
             "center_xy_mm": _stats(1000 * np.linalg.norm(offset[:, :2], axis=1)),
             "axis_deg": _stats(np.degrees(np.arccos(cosine))),
-            "radius_rel": _stats(np.abs(preds.radii[p] - labels.radii[lab]) / labels.radii[lab])}
+            "radius_rel": _stats(np.abs(preds.radii[p] - labels.radii[lab]) / labels.radii[lab]),
+            "radius_rel_signed": _stats((preds.radii[p] - labels.radii[lab]) / labels.radii[lab])}
 
 
 def score(preds: Caps, labels: Caps) -> dict:
@@ -294,7 +295,8 @@ def stage_seconds(ply: Path, detect_args: list[str]) -> tuple[dict, np.ndarray, 
     T_input_bed = np.eye(4) if cloud.in_bed_frame or args.bed_frame else estimate_bed_frame(cloud.points)
     seconds["bed plane"] = time.perf_counter() - start
     bed_points = transform_points(np.linalg.inv(T_input_bed), cloud.points)
-    result = detect_points(model, bed_points, ClusterConfig(method=args.clustering))
+    result = detect_points(model, bed_points, ClusterConfig(method=args.clustering), zoom=args.zoom,
+                           readings=args.readings)
     for name in ("network", "instances", "pose"):
         seconds[name] = result.timings_ms.get(name, math.nan) / 1000
     result = transform_result(result, T_input_bed, "input")
@@ -461,7 +463,8 @@ def report(figures: dict) -> list[str]:
         lines.append(f"  centre err 3D  {_fmt(e['center_mm'], ' mm')}   (score.py's centre error)")
         lines.append(f"  centre err xy  {_fmt(e['center_xy_mm'], ' mm')}")
         lines.append(f"  axis err       {_fmt(e['axis_deg'], ' deg')}")
-        lines.append(f"  radius rel err {_fmt(e['radius_rel'], '', 3)}")
+        lines.append(f"  radius rel err {_fmt(e['radius_rel'], '', 3)}, signed median "
+                     f"{e['radius_rel_signed']['median']:+.3f} (above 0: detections are larger)")
     return lines
 
 

@@ -14,7 +14,7 @@ from perception.cap import Caps
 from perception.instances import ClusterConfig, cluster
 from perception.model import LENGTH_UNIT, MushroomNet, inference_model, voxel_features
 from perception.pose import RADIUS_MODES, fit_caps, with_rim_radii
-from perception.sparse import COORD_MAX, SparseTensor, voxelize
+from perception.sparse import COORD_MAX, SparseTensor, voxel_average, voxelize
 
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "default.pt"
@@ -64,6 +64,16 @@ def at_training_density(model: MushroomNet, points: np.ndarray) -> np.ndarray:
     return np.arange(len(points))
 
 
+READINGS = 1
+"""How many times detection reads a cloud by default (``predict``'s ``readings``: each further reading
+turned another 360/N degrees about the vertical, their encodings averaged). The voxel grid lies over
+each cap differently in every reading, and one reading's caps depend on how it falls. Four readings
+steady them on the real cloud of ../shared/real/ (F1 over six turns of the cloud 0.833-0.917 against
+0.816-0.898, bench/real.py --turns 6) and on val50/test50 (AP@50 and angle), but on bench/views.py's
+2-camera beds AP@25 falls from 97.1 to 96.3 %: caps that the unturned reading happens to find well,
+the turned ones find worse. So one reading is the default and ``--readings 4`` the choice where a
+steadier answer is worth four network passes (the model card gives both)."""
+
 OPERATING_SPACING = 0.0035
 """Metres: beyond this point spacing caps under 30 mm across are found less reliably (bench/range.py,
 caps 15-30 mm: AP@25 95.2 % at 3 mm, 82.3 % at 4 mm, 62.9 % at 5 mm)."""
@@ -104,7 +114,7 @@ def reading_zoom(model: MushroomNet, points: np.ndarray) -> float:
 
 @torch.no_grad()
 def predict(model: MushroomNet, points: np.ndarray, thin: bool = True,
-            zoom: float | None = None) -> VoxelPrediction:
+            zoom: float | None = None, readings: int = 1) -> VoxelPrediction:
     """The network's encoding for a cloud in the bed frame; ``point_to_voxel`` covers every input point.
 
     The network was trained on clouds with one point per ``model.point_spacing`` (the synthetic
@@ -114,7 +124,9 @@ def predict(model: MushroomNet, points: np.ndarray, thin: bool = True,
     (``at_training_density``), and points whose voxel lost its points take the prediction of the
     nearest kept voxel. Clouds at training density are used as they are (thinning them costs 3 points
     of AP@25 on the 5.1 mm val50). The network then reads the cloud scaled by ``zoom`` (default:
-    ``reading_zoom``); what it returns is in the cloud's own metres again.
+    ``reading_zoom``); what it returns is in the cloud's own metres again. With ``readings`` over 1 the
+    network reads the cloud that many times, turned about the vertical, and each voxel's encoding is
+    the mean of the readings' (``READINGS`` says why).
     """
     points = np.asarray(points, np.float64)
     if len(points) == 0:
@@ -129,6 +141,9 @@ def predict(model: MushroomNet, points: np.ndarray, thin: bool = True,
     device = next(model.parameters()).device
     coords, kept_to_voxel, zoomed_centroids = network_input(zoom * points[kept], model.config.voxel, device)
     centroids, existence, centers, orientation = network_output(model, coords, zoomed_centroids, zoom)
+    if readings > 1:
+        existence, centers, orientation = _averaged_readings(model, points[kept], zoom, readings, kept_to_voxel,
+                                                             (existence, centers, orientation))
     if len(kept) == len(points):
         point_to_voxel = kept_to_voxel.numpy()
     else:
@@ -152,6 +167,31 @@ def network_output(model: MushroomNet, coords: torch.Tensor, zoomed_centroids: t
         centers += centroids
     orientation = out[:, 4:7].numpy() if encoding == "explicit-orientation" else out[:, 4].clamp(0.0, 1.0).numpy()
     return centroids, torch.sigmoid(out[:, 0]).numpy(), centers, orientation
+
+
+def _averaged_readings(model: MushroomNet, points: np.ndarray, zoom: float, readings: int,
+                       point_to_voxel: torch.Tensor, first: tuple) -> tuple:
+    """Existence, centres and orientation values of the voxels of ``point_to_voxel`` averaged over
+    ``readings`` readings of ``points``: the first (``first``) as they are, each further one turned by
+    another 360/readings degrees about the vertical through their centroid, its centres turned back.
+    Each reading lays the voxel grid differently over the caps; a voxel takes the mean of its points'
+    values from each reading."""
+    count = len(first[0])
+    pivot = points.mean(0)
+    total = np.column_stack(first)
+    for k in range(1, readings):
+        angle = 2 * np.pi * k / readings
+        rotation = np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0],
+                             [0.0, 0.0, 1.0]])
+        coords, turned_to_voxel, zoomed = network_input(zoom * ((points - pivot) @ rotation.T + pivot),
+                                                        model.config.voxel, next(model.parameters()).device)
+        _, existence, centers, orientation = network_output(model, coords, zoomed, zoom)
+        if orientation.ndim == 2:  # explicit axis vectors turn back with the centres
+            orientation = orientation @ rotation
+        values = np.column_stack([existence, (centers - pivot) @ rotation + pivot, orientation])
+        total += voxel_average(torch.from_numpy(values[turned_to_voxel.numpy()]), point_to_voxel, count).numpy()
+    mean = total / readings
+    return mean[:, 0], mean[:, 1:4], mean[:, 4] if first[2].ndim == 1 else mean[:, 4:]
 
 
 def _nearest_voxel(points: np.ndarray, voxel: float, coords: np.ndarray, centroids: np.ndarray) -> np.ndarray:
@@ -216,11 +256,12 @@ def find_caps(prediction: VoxelPrediction, voxel: float, cluster_config: Cluster
 
 
 def detect_points(model: MushroomNet, points: np.ndarray, cluster_config: ClusterConfig = ClusterConfig(),
-                  zoom: float | None = None) -> SceneResult:
-    """Caps in a cloud already in the bed frame (z up, metres), read at ``zoom`` (default: the model's)."""
+                  zoom: float | None = None, readings: int = READINGS) -> SceneResult:
+    """Caps in a cloud already in the bed frame (z up, metres), read ``readings`` times (``predict``) at
+    ``zoom`` (default: the model's)."""
     timings = {}
     start = time.perf_counter()
-    prediction = predict(model, points, zoom=zoom)
+    prediction = predict(model, points, zoom=zoom, readings=readings)
     timings["network"] = 1000 * (time.perf_counter() - start)
     voxel_labels, fit = find_caps(prediction, model.config.voxel, cluster_config, timings=timings)
     point_labels = voxel_labels[prediction.point_to_voxel]
@@ -258,16 +299,17 @@ def log_rerun(rec, result: SceneResult, points: np.ndarray, entity: str = "world
 
 def evaluate_on_scenes(model: MushroomNet, scenes, methods=("meanshift", "dbscan"), height: str = "free",
                        axis: str = "surface", progress: bool = False, zoom: float | None = None,
-                       use_ray: bool = False, ray_address: str | None = None, radius: str = "rim") -> dict:
-    """The paper's metrics of ``model`` on synthetic scenes, per clustering method (one network pass
-    per scene, read at ``zoom``, by default the model's own); with ``use_ray`` each scene is read by a
+                       use_ray: bool = False, ray_address: str | None = None, radius: str = "rim",
+                       readings: int = READINGS) -> dict:
+    """The paper's metrics of ``model`` on synthetic scenes, per clustering method (each scene read
+    ``readings`` times at ``zoom``, by default the model's own); with ``use_ray`` each scene is read by a
     Ray task (the same caps: a scene's reading depends on the scene and the model alone)."""
     from tqdm import tqdm
 
     from perception.evaluate import evaluate
 
     scenes = list(scenes)
-    items = [(scene, methods, height, axis, zoom, radius) for scene in scenes]
+    items = [(scene, methods, height, axis, zoom, radius, readings) for scene in scenes]
     if use_ray:
         from common.distributed import ray_map
 
@@ -284,9 +326,10 @@ def evaluate_on_scenes(model: MushroomNet, scenes, methods=("meanshift", "dbscan
     return {method: evaluate(preds[method], gts) for method in methods}
 
 
-def scene_caps(model: MushroomNet, scene, methods, height: str, axis: str, zoom: float | None, radius: str = "rim"):
+def scene_caps(model: MushroomNet, scene, methods, height: str, axis: str, zoom: float | None, radius: str = "rim",
+               readings: int = READINGS):
     """A synthetic scene's caps per clustering method, and its visible ground truth."""
-    prediction = predict(model, scene.points, zoom=zoom)
+    prediction = predict(model, scene.points, zoom=zoom, readings=readings)
     found = {}
     for method in methods:
         found[method] = find_caps(prediction, model.config.voxel, ClusterConfig(method=method), height, axis,

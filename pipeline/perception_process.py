@@ -21,7 +21,7 @@ class PerceptionProcessError(RuntimeError):
 
 
 def _serve(connection, model, threads: int) -> None:
-    """The child's loop: (points, clustering config) in, SceneResult (or the exception) out, until None."""
+    """The child's loop: (points, clustering config, readings) in, SceneResult (or the exception) out, until None."""
     import torch
 
     from perception.detect import detect_points
@@ -40,9 +40,9 @@ def _serve(connection, model, threads: int) -> None:
             return
         if request is None:
             return
-        points, clustering = request
+        points, clustering, readings = request
         try:
-            answer = (True, detect_points(model, points, clustering))
+            answer = (True, detect_points(model, points, clustering, readings=readings))
         except Exception as error:  # noqa: BLE001 - raised again in the parent
             answer = (False, error)
         connection.send(answer)
@@ -75,10 +75,10 @@ class PerceptionProcess:
             raise PerceptionProcessError(f"the perception process did not start (exit code "
                                          f"{self._process.exitcode})") from None
 
-    def detect(self, points: np.ndarray, clustering):
+    def detect(self, points: np.ndarray, clustering, readings: int):
         """The caps in ``points`` (bed frame), as ``detect_points`` finds them."""
         try:
-            self._connection.send((np.ascontiguousarray(points), clustering))
+            self._connection.send((np.ascontiguousarray(points), clustering, readings))
             ok, value = self._connection.recv()
         except (EOFError, BrokenPipeError, ConnectionResetError):
             self._process.join(timeout=1)

@@ -30,6 +30,9 @@ class ReplayOptions:
     """One camera without a rig: fuse the last N frames, registered by ICP (default: each frame alone)."""
     clustering: Literal["meanshift", "dbscan"] = "meanshift"
     """How the network's cap-centre votes are grouped into caps."""
+    readings: int = 1
+    """How many times the network reads each fused cloud, turned a further 360/N degrees about the
+    vertical each time, its readings averaged: steadier caps for N network passes (4: see the model card)."""
 
     @property
     def realtime(self) -> bool:
@@ -136,7 +139,7 @@ def run_replay(session: Path, model, out_dir: Path, rrd: Path | None, options: R
                               "--from-stage capture")
         recorded = tuple(FusedCloud.from_world(u.points, u.T_world_bed, u.frame_ids) for u in units)
     config = RunConfig(fusion=FusionStage(rig=rig, window=options.window, recorded=recorded),
-                       perception=PerceptionStage(options.clustering), live=options.realtime)
+                       perception=PerceptionStage(options.clustering, options.readings), live=options.realtime)
     outputs = Outputs(record=out_dir / "replay.mcap", rrd=rrd, detections=out_dir / "detections.json",
                       name=f"replay of {session.name}", quiet=quiet)
     frames = Paced(source) if options.realtime else source

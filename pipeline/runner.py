@@ -48,6 +48,9 @@ class PerceptionStage:
 
     clustering: Literal["meanshift", "dbscan"] = "meanshift"
     """How the network's cap-centre votes are grouped into caps."""
+    readings: int = 1
+    """How many times the network reads each fused cloud, turned a further 360/N degrees about the
+    vertical each time, its readings averaged: steadier caps for N network passes (4: see the model card)."""
 
 
 @dataclass(frozen=True)
@@ -297,8 +300,9 @@ class Runner:
                     return
                 started = time.perf_counter()
                 cloud = unit.cloud
-                found = (self._detector.detect(cloud.points, clustering) if self._detector is not None
-                         else detect_points(self.model, cloud.points, clustering))
+                readings = self.config.perception.readings
+                found = (self._detector.detect(cloud.points, clustering, readings) if self._detector is not None
+                         else detect_points(self.model, cloud.points, clustering, readings=readings))
                 result = transform_result(found, cloud.T_world_bed, "world")
                 now = time.perf_counter()
                 detection = Detection(unit, result, result.caps.to_document("world"), now - started,

@@ -184,7 +184,8 @@ class Example:
 def test_the_parser_restates_its_choices_as_the_libraries_define_them():
     from perception.instances import METHODS
     from perception.synthetic.scene import VISIBILITY_MODELS
-    from pipeline.commands.common import CAMERAS, CLUSTERING, SHIPPED_ZOOM, SPACING_HELP, VISIBILITY
+    from pipeline.commands.common import CAMERAS, CLUSTERING, READINGS, SHIPPED_ZOOM, SPACING_HELP, VISIBILITY
+    from perception import detect
     from perception.detect import DEFAULT_WEIGHTS
     from perception.synthetic.scene import SceneConfig
     from perception.train import load_weights
@@ -193,6 +194,10 @@ def test_the_parser_restates_its_choices_as_the_libraries_define_them():
     assert (CLUSTERING, CAMERAS, VISIBILITY) == (METHODS, sources.CAMERAS, VISIBILITY_MODELS)
     assert SPACING_HELP.startswith(f"{SceneConfig.spacing:g},")
     assert SHIPPED_ZOOM == load_weights(DEFAULT_WEIGHTS)[0].inference_zoom
+    from pipeline.replay import ReplayOptions
+    from pipeline.runner import PerceptionStage
+
+    assert READINGS == detect.READINGS == PerceptionStage.readings == ReplayOptions.readings
 
 
 def test_building_the_parser_imports_no_heavy_library():

@@ -25,11 +25,11 @@ def bed_points():
 
 
 def test_the_process_finds_the_caps_this_process_finds(model, bed_points):
-    here = detect_points(model, bed_points, ClusterConfig())
+    here = detect_points(model, bed_points, ClusterConfig(), readings=3)  # not the default: it must reach the child
     worker = PerceptionProcess(model, threads=1)
     try:
-        there = worker.detect(bed_points, ClusterConfig())
-        again = worker.detect(bed_points[::2], ClusterConfig())
+        there = worker.detect(bed_points, ClusterConfig(), 3)
+        again = worker.detect(bed_points[::2], ClusterConfig(), 1)
     finally:
         worker.close()
     assert len(here.caps) >= 5
@@ -44,7 +44,7 @@ def test_an_error_of_the_model_is_raised_here(model):
     try:
         far = np.full((200, 3), 1e6)  # beyond the network's voxel grid: detect_points refuses it
         with pytest.raises(ValueError, match="voxel grid"):
-            worker.detect(far, ClusterConfig())
+            worker.detect(far, ClusterConfig(), 1)
     finally:
         worker.close()
 
@@ -54,5 +54,5 @@ def test_a_child_that_dies_is_one_error(model, bed_points):
     worker._process.kill()
     worker._process.join()
     with pytest.raises(PerceptionProcessError, match="perception process ended"):
-        worker.detect(bed_points, ClusterConfig())
+        worker.detect(bed_points, ClusterConfig(), 1)
     worker.close()

@@ -114,6 +114,10 @@ def test_pair_errors_by_hand():
     assert errors["center_xy_mm"]["mean"] == pytest.approx(2.5)
     assert errors["axis_deg"] == pytest.approx({"n": 1, "mean": 45.0, "median": 45.0})
     assert errors["radius_rel"] == pytest.approx({"n": 1, "mean": 0.25, "median": 0.25})
+    assert errors["radius_rel_signed"]["median"] == pytest.approx(0.25)
+    small = real.score(real.read_caps([cap(0, 0, radius=0.015)]), labels)["errors_all"]  # 25 % too small
+    assert small["radius_rel"]["median"] == pytest.approx(0.25)
+    assert small["radius_rel_signed"]["median"] == pytest.approx(-0.25)
     # an axis pointing down is 180 deg off: axes are signed up-vectors
     down = real.score(real.read_caps([cap(0, 0, axis=[0, 0, -1])]), labels)
     assert down["errors_all"]["axis_deg"]["mean"] == pytest.approx(180.0)

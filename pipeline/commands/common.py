@@ -167,6 +167,7 @@ parse_run_fraction = at_most(positive(float), 1.0, " (a fraction of the run's it
 parse_mushroom_count = at_most(non_negative(int), MAX_MUSHROOMS, " (a 0.5 m bed is full at about 260)")
 parse_spacing = at_least(at_most(positive(float), 0.02, " metres (0.003 is 3 mm)"), 0.001,
                          " metres: a finer spacing only multiplies the points (0.003 is 3 mm)")
+parse_readings = at_most(positive(int), 12, " (each reading is a pass of the network)")
 parse_zoom = at_least(at_most(positive(float), 2.0, " (the network would read caps twice their size)"), 0.5,
                       " (the network would read caps half their size)")
 
@@ -176,6 +177,8 @@ SPACING_HELP = "0.003, the generator's: every 4.5 mm voxel a surface crosses hol
 """SceneConfig.spacing and what it gives."""
 SHIPPED_ZOOM = 1.2
 """The zoom the shipped model's weights record (trained with --scale-jitter 1.05 1.35)."""
+READINGS = 1
+"""perception.detect.READINGS: how many turned readings of a cloud detection averages."""
 CLUSTERING = ("meanshift", "dbscan")
 """perception.instances.METHODS: how voted centres are grouped into caps."""
 CAMERAS = ("realsense", "oak", "virtual")

@@ -8,8 +8,8 @@ import time
 from pathlib import Path
 
 from pipeline.commands.common import (CAMERAS, STOP_EXIT, CliError, CommandFailed, add_overwrite_flag, load_model,
-                                      parse_seed, parse_threads, positive, refuse_to_replace, torch_threads,
-                                      writable_file, written_files)
+                                      parse_readings, parse_seed, parse_threads, positive, refuse_to_replace,
+                                      torch_threads, writable_file, written_files)
 
 NAME = "live"
 HELP = "capture, fuse and detect as frames arrive, shown in Rerun and recorded"
@@ -20,6 +20,7 @@ RUN_FLAGS = {"max_units": {"name": "turns", "parse": positive(int), "metavar": "
              "perception_threads": {"parse": parse_threads, "metavar": "N"}}
 """RunConfig's flags: names and validators where the field's own are not enough."""
 STAGE_FLAGS = {"window": {"parse": positive(int), "metavar": "N"}}
+PERCEPTION_FLAGS = {"readings": {"parse": parse_readings, "metavar": "N"}}
 BED_FLAGS = {"seed": {"parse": parse_seed}, "views": {"parse": positive(int)}}
 
 
@@ -41,7 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_flags(parser, "pipeline.runner:RunConfig", RUN_FLAGS, only=tuple(RUN_FLAGS))
     add_config_flags(parser, "pipeline.sources:VirtualBed", BED_FLAGS, only=tuple(BED_FLAGS))
     parser.add_argument("--model", help="weights file (default: the shipped model)")
-    add_config_flags(parser, "pipeline.runner:PerceptionStage")
+    add_config_flags(parser, "pipeline.runner:PerceptionStage", PERCEPTION_FLAGS)
     parser.add_argument("--threads", type=parse_threads, help="torch threads (default: all cores)")
     parser.add_argument("--quiet", action="store_true", help="no line per fused unit")
 

@@ -8,8 +8,8 @@ import sys
 from pathlib import Path
 
 from pipeline.commands.common import (STOP_EXIT, CliError, CommandFailed, add_overwrite_flag, add_ray_flag, load_model,
-                                      model_path, parse_threads, positive, ray_options, refuse_to_replace,
-                                      torch_threads, writable_dir, writable_file, written_files)
+                                      model_path, parse_readings, parse_threads, positive, ray_options,
+                                      refuse_to_replace, torch_threads, writable_dir, writable_file, written_files)
 
 TOLERANCES = "pipeline.check:Tolerances"
 TOLERANCE = "tol_"
@@ -21,7 +21,8 @@ TOLERANCE_FLAGS = {
 }
 """pipeline.check.Tolerances documents none of its fields: the flags' help is here."""
 REPLAY_OPTIONS = "pipeline.replay:ReplayOptions"
-OPTION_FLAGS = {"rig": {"metavar": "RIG_JSON"}, "window": {"parse": positive(int), "metavar": "N"}}
+OPTION_FLAGS = {"rig": {"metavar": "RIG_JSON"}, "window": {"parse": positive(int), "metavar": "N"},
+                "readings": {"parse": parse_readings, "metavar": "N"}}
 """How ReplayOptions' flags read their values, where the field's type is not enough."""
 
 NAME = "replay"
@@ -38,7 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="replay", help="output folder (default ./replay): replay.mcap, "
                         "detections.json, replay.rrd")
     parser.add_argument("--rrd", help="the Rerun recording (default OUT/replay.rrd)")
-    add_config_flags(parser, REPLAY_OPTIONS, OPTION_FLAGS, exclude=("clustering",))
+    add_config_flags(parser, REPLAY_OPTIONS, OPTION_FLAGS, exclude=("clustering", "readings"))
     parser.add_argument("--check", action="store_true", help="compare the new caps with the recorded ones unit by "
                         "unit; exit 1 when a cap is lost, gained or changed beyond the tolerances")
     parser.add_argument("--expected", help="--check against these detections (JSON: one document or a list, one "
@@ -47,7 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--verbose", action="store_true", help="--check: list every cap, not only changes")
     add_overwrite_flag(parser)
     parser.add_argument("--model", help="weights file (default: the shipped model)")
-    add_config_flags(parser, REPLAY_OPTIONS, only=("clustering",))
+    add_config_flags(parser, REPLAY_OPTIONS, OPTION_FLAGS, only=("clustering", "readings"))
     parser.add_argument("--threads", type=parse_threads, help="torch threads (default: all cores)")
     parser.add_argument("--quiet", action="store_true", help="no line per fused unit")
     add_ray_flag(parser, "several sessions: one Ray task each")

@@ -1,0 +1,85 @@
+"""Turned readings (``predict(readings=N)``): each voxel's encoding is the mean of N readings of the
+cloud, each turned a further 360/N degrees about the vertical, with their centres turned back; the
+setting reaches detection from every command and the runner."""
+
+import numpy as np
+import pytest
+import torch
+
+from common.geometry import voxel_representatives
+from helpers import tiny_network_config
+from perception.detect import detect_points, predict
+from perception.instances import ClusterConfig
+from perception.model import MushroomNet
+from perception.synthetic.scene import SceneConfig, generate_scene
+
+ZOOM = 1.1
+
+
+@pytest.fixture(scope="module")
+def model():
+    torch.manual_seed(0)
+    return MushroomNet(tiny_network_config()).eval()
+
+
+@pytest.fixture(scope="module")
+def bed_points(model):
+    """A bed with one point per voxel of the network's grid, so that a point's values are its voxel's."""
+    points = generate_scene(4, SceneConfig(mushrooms=(6, 6))).points.astype(np.float64)
+    return points[voxel_representatives(points, model.config.voxel / ZOOM)]
+
+
+def _turn(angle_deg: float) -> np.ndarray:
+    angle = np.radians(angle_deg)
+    return np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0.0, 0.0, 1.0]])
+
+
+@pytest.mark.parametrize("readings", [2, 3])
+def test_each_point_takes_the_mean_of_the_turned_readings(model, bed_points, readings):
+    averaged = predict(model, bed_points, thin=False, zoom=ZOOM, readings=readings)
+    pivot = bed_points.mean(0)
+    existence, centers, orientation = [], [], []
+    for k in range(readings):  # the same readings made one at a time, through the public call
+        rotation = _turn(360.0 * k / readings)
+        one = predict(model, (bed_points - pivot) @ rotation.T + pivot, thin=False, zoom=ZOOM)
+        existence.append(one.existence[one.point_to_voxel])
+        centers.append((one.centers[one.point_to_voxel] - pivot) @ rotation + pivot)
+        orientation.append(one.orientation[one.point_to_voxel])
+    np.testing.assert_allclose(averaged.existence[averaged.point_to_voxel], np.mean(existence, 0), atol=1e-9)
+    np.testing.assert_allclose(averaged.centers[averaged.point_to_voxel], np.mean(centers, 0), atol=1e-9)
+    np.testing.assert_allclose(averaged.orientation[averaged.point_to_voxel], np.mean(orientation, 0), atol=1e-9)
+    # the turned readings differ from the first one: the mean is not one reading repeated
+    assert np.abs(np.mean(centers, 0) - centers[0]).max() > 1e-4
+
+
+def test_one_reading_is_the_network_once(model, bed_points):
+    once, default = predict(model, bed_points, zoom=ZOOM, readings=1), predict(model, bed_points, zoom=ZOOM)
+    np.testing.assert_array_equal(once.centers, default.centers)
+
+
+def test_the_runner_reads_as_many_times_as_its_perception_stage_says():
+    from capture.source import Source
+    from perception.detect import DEFAULT_WEIGHTS
+    from perception.train import load_weights
+    from pipeline.runner import PerceptionStage, RunConfig, Runner
+    from pipeline.sources import VirtualBed, virtual_bed_source
+
+    shipped = load_weights(DEFAULT_WEIGHTS)[0]
+    frames, _ = virtual_bed_source(VirtualBed(seed=5, views=2))
+    frames = list(frames)
+
+    class Frames(Source):
+        def __init__(self):
+            self.left = iter(frames)
+
+        def read(self):
+            return next(self.left, None)
+
+    found = {}
+    for readings in (1, 3):
+        summary = Runner(Frames(), shipped, RunConfig(perception=PerceptionStage(readings=readings)), []).run()
+        cloud = summary.last_unit.cloud
+        found[readings] = summary.last_detection.result
+        direct = detect_points(shipped, cloud.points, ClusterConfig(), readings=readings)
+        np.testing.assert_allclose(found[readings].voxels.existence, direct.voxels.existence, atol=1e-9)
+    assert not np.allclose(found[1].voxels.existence, found[3].voxels.existence)
