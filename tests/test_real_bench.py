@@ -118,6 +118,9 @@ def test_pair_errors_by_hand():
     small = real.score(real.read_caps([cap(0, 0, radius=0.015)]), labels)["errors_all"]  # 25 % too small
     assert small["radius_rel"]["median"] == pytest.approx(0.25)
     assert small["radius_rel_signed"]["median"] == pytest.approx(-0.25)
+    # a detection as large as the label's radius without the footprint's bias scores no radius error
+    fair = real.read_caps([cap(0, 0, radius=0.02 / (1 + real.FOOTPRINT_RADIUS_BIAS))])
+    assert real.score(fair, labels)["errors_all"]["radius_rel_unbiased_labels"]["mean"] == pytest.approx(0.0, abs=1e-12)
     # an axis pointing down is 180 deg off: axes are signed up-vectors
     down = real.score(real.read_caps([cap(0, 0, axis=[0, 0, -1])]), labels)
     assert down["errors_all"]["axis_deg"]["mean"] == pytest.approx(180.0)
