@@ -6,7 +6,7 @@ A cap counts as ground truth in a setting when at least 5 fused points lie on it
 (within 2 mm), so every setting is scored on the caps it could see; n_gt says how many that was.
 Prints a Markdown table (AP@25, AP@50, cosine, axis angle as the paper's and as the mean over caps,
 scale error, caps seen) for docs/RESULTS.md.
-Usage: python bench/views.py [--beds 10] [--model PATH]
+Usage: python bench/views.py [--beds 10] [--model PATH] [--readings N]
 """
 
 import sys
@@ -22,12 +22,12 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from capture.source import Source  # noqa: E402
-from perception.detect import DEFAULT_WEIGHTS  # noqa: E402
+from perception.detect import DEFAULT_WEIGHTS, READINGS  # noqa: E402
 from perception.cap import Caps  # noqa: E402
 from perception.evaluate import evaluate  # noqa: E402
 from perception.train import load_weights  # noqa: E402
 from pipeline.process import reuse_freed_memory  # noqa: E402
-from pipeline.runner import RunConfig, Runner  # noqa: E402
+from pipeline.runner import PerceptionStage, RunConfig, Runner  # noqa: E402
 from pipeline.sources import VirtualBed, virtual_bed_source  # noqa: E402
 
 MIN_CAP_POINTS, ON_SURFACE = 5, 0.002
@@ -58,6 +58,8 @@ def main() -> None:
     parser.add_argument("--beds", type=int, default=10)
     parser.add_argument("--model", type=Path, default=DEFAULT_WEIGHTS)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--readings", type=int, default=READINGS, help="turned readings averaged per fused cloud "
+                        f"(default {READINGS}, as the runner reads)")
     args = parser.parse_args()
     reuse_freed_memory()
     torch.set_num_threads(args.threads)
@@ -72,7 +74,8 @@ def main() -> None:
         frames = list(source)
         for name, indices in SETTINGS.items():
             start = time.perf_counter()
-            summary = Runner(Frames([frames[k] for k in indices]), model, RunConfig(), []).run()
+            config = RunConfig(perception=PerceptionStage(readings=args.readings))
+            summary = Runner(Frames([frames[k] for k in indices]), model, config, []).run()
             fused, result = summary.last_unit.cloud, summary.last_detection.result
             seen = visible_caps(bed, fused.world_points)
             preds[name].append(result.caps)
@@ -82,7 +85,7 @@ def main() -> None:
                   f"{len(result.caps)} detected, {time.perf_counter() - start:.1f} s", flush=True)
     iterations = meta.get("total_iterations", meta.get("iterations", "?"))
     print(f"\nmodel: {args.model} ({iterations} iterations); {args.beds} beds "
-          f"(seeds 100-{99 + args.beds}); MeanShift\n")
+          f"(seeds 100-{99 + args.beds}); MeanShift, {args.readings} reading(s)\n")
     print("| views | AP@25 | AP@50 | cosine | angle (deg) | mean angle over caps (deg) | scale error "
           "| caps seen / all | points per bed |")
     print("|---|---|---|---|---|---|---|---|---|")
