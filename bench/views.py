@@ -6,7 +6,9 @@ A cap counts as ground truth in a setting when at least 5 fused points lie on it
 (within 2 mm), so every setting is scored on the caps it could see; n_gt says how many that was.
 Prints a Markdown table (AP@25, AP@50, cosine, axis angle as the paper's and as the mean over caps,
 scale error, caps seen) for docs/RESULTS.md.
-Usage: python bench/views.py [--beds 10] [--model PATH] [--readings N]
+With --turns N each fused cloud is also detected turned by 90, 180 ... degrees (its caps turned back):
+the spread says how much a setting's figures owe to where the voxel grid falls over the caps.
+Usage: python bench/views.py [--beds 10] [--model PATH] [--readings N] [--turns N]
 """
 
 import sys
@@ -16,13 +18,15 @@ from pathlib import Path
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 
 import argparse  # noqa: E402
+import dataclasses  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from capture.source import Source  # noqa: E402
-from perception.detect import DEFAULT_WEIGHTS, READINGS  # noqa: E402
+from common.geometry import turn_about_z  # noqa: E402
+from perception.detect import DEFAULT_WEIGHTS, READINGS, detect_points  # noqa: E402
 from perception.cap import Caps  # noqa: E402
 from perception.evaluate import evaluate  # noqa: E402
 from perception.train import load_weights  # noqa: E402
@@ -53,6 +57,17 @@ class Frames(Source):
         return next(self.frames, None)
 
 
+def turned_caps(model, fused, degrees: float, readings: int) -> Caps:
+    """The caps ``detect_points`` finds in a fused cloud turned by ``degrees`` about the vertical through
+    its centroid (bed frame), turned back and given in the world frame, as the runner gives them."""
+    rotation = turn_about_z(np.radians(degrees))
+    pivot = fused.points.mean(0)
+    caps = detect_points(model, (fused.points - pivot) @ rotation.T + pivot, readings=readings).caps
+    back = dataclasses.replace(caps, centers=(caps.centers - pivot) @ rotation + pivot,
+                               rotations=rotation.T @ caps.rotations)
+    return back.moved(fused.T_world_bed)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--beds", type=int, default=10)
@@ -60,10 +75,14 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--readings", type=int, default=READINGS, help="turned readings averaged per fused cloud "
                         f"(default {READINGS}, as the runner reads)")
+    parser.add_argument("--turns", type=int, default=1, help="also detect on each fused cloud turned by k x 90 "
+                        "degrees about the vertical through its centroid, k = 1 .. N-1, and print AP@25 / AP@50 per "
+                        "turn: how much a setting's figures owe to where the voxel grid falls over its caps")
     args = parser.parse_args()
     reuse_freed_memory()
     torch.set_num_threads(args.threads)
     model, meta = load_weights(args.model)
+    turned = {(name, k): [] for name in SETTINGS for k in range(1, args.turns)}
     preds = {name: [] for name in SETTINGS}
     gts = {name: [] for name in SETTINGS}
     points = {name: [] for name in SETTINGS}
@@ -81,6 +100,8 @@ def main() -> None:
             preds[name].append(result.caps)
             gts[name].append(Caps(bed.centers[seen], bed.rotations[seen], bed.scales[seen]))
             points[name].append(len(fused))
+            for k in range(1, args.turns):
+                turned[name, k].append(turned_caps(model, fused, 90.0 * k, args.readings))
             print(f"bed {seed} {name}: {len(fused)} points, {len(seen)}/{len(bed.centers)} caps seen, "
                   f"{len(result.caps)} detected, {time.perf_counter() - start:.1f} s", flush=True)
     iterations = meta.get("total_iterations", meta.get("iterations", "?"))
@@ -95,6 +116,12 @@ def main() -> None:
         print(f"| {name} | {100 * r.ap25:.1f} % | {100 * r.ap50:.1f} % | {r.cosine:.4f} | {r.angle_deg:.2f} "
               f"| {r.angle_deg_mean:.2f} | {100 * r.scale_err:.1f} % "
               f"| {total} / {all_caps} | {np.median(points[name]):.0f} |")
+    if args.turns > 1:
+        print("\n| views | " + " | ".join(f"turned {90 * k} deg" for k in range(1, args.turns)) + " |")
+        print("|---|" + "---|" * (args.turns - 1))
+        for name in SETTINGS:
+            cells = [evaluate(turned[name, k], gts[name]) for k in range(1, args.turns)]
+            print(f"| {name} | " + " | ".join(f"{100 * r.ap25:.1f} / {100 * r.ap50:.1f} %" for r in cells) + " |")
 
 
 if __name__ == "__main__":

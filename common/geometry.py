@@ -15,6 +15,12 @@ def transform_points(T_parent_child: np.ndarray, points: np.ndarray) -> np.ndarr
     return (points @ T_parent_child[:3, :3].T + T_parent_child[:3, 3]).astype(points.dtype, copy=False)
 
 
+def turn_about_z(angle: float) -> np.ndarray:
+    """The 3x3 rotation by ``angle`` radians about the vertical (z), counter-clockwise seen from above."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
 def look_at(eye: np.ndarray, target: np.ndarray, up_hint: np.ndarray = np.array([0.0, 1.0, 0.0])) -> np.ndarray:
     """T_world_camera of an OpenCV camera at ``eye`` looking at ``target``."""
     eye, target = np.asarray(eye, np.float64), np.asarray(target, np.float64)

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from common.geometry import cell_lookup, transform_points, voxel_representatives
+from common.geometry import cell_lookup, transform_points, turn_about_z, voxel_representatives
 from perception.cap import Caps
 from perception.instances import ClusterConfig, cluster
 from perception.model import LENGTH_UNIT, MushroomNet, inference_model, voxel_features
@@ -180,9 +180,7 @@ def _averaged_readings(model: MushroomNet, points: np.ndarray, zoom: float, read
     pivot = points.mean(0)
     total = np.column_stack(first)
     for k in range(1, readings):
-        angle = 2 * np.pi * k / readings
-        rotation = np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0],
-                             [0.0, 0.0, 1.0]])
+        rotation = turn_about_z(2 * np.pi * k / readings)
         coords, turned_to_voxel, zoomed = network_input(zoom * ((points - pivot) @ rotation.T + pivot),
                                                         model.config.voxel, next(model.parameters()).device)
         _, existence, centers, orientation = network_output(model, coords, zoomed, zoom)

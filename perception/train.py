@@ -26,6 +26,7 @@ from torch.optim.swa_utils import AveragedModel
 from tqdm import tqdm
 
 from common.files import write_atomically
+from common.geometry import turn_about_z
 from fusion.integrate import IntegrationConfig
 from perception.cap import cap_rotation
 from perception.encoding import encode
@@ -138,9 +139,7 @@ def augmented_sample(config: TrainConfig, iteration: int) -> dict[str, np.ndarra
     rng = np.random.default_rng(seed + 1)
     rotation = np.eye(3)
     if config.rotate_z:
-        angle = rng.uniform(0, 2 * np.pi)
-        c, s = np.cos(angle), np.sin(angle)
-        rotation = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+        rotation = turn_about_z(rng.uniform(0, 2 * np.pi))
     tilt = np.radians(config.tilt_deg)
     if tilt > 0:
         rotation = cap_rotation(rng.uniform(-tilt, tilt), rng.uniform(-tilt, tilt)) @ rotation

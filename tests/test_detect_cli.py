@@ -75,6 +75,18 @@ def test_detect_writes_json_in_the_input_frame(tmp_path, scene_ply):
     assert rows["/world/perception/existence"] == 1 and rows["/world/perception/centers"] == 1
 
 
+def test_detect_reads_the_cloud_as_many_times_as_asked(tmp_path, scene_ply):
+    ply, scene = scene_ply
+    caps = {}
+    for readings in (1, 3):
+        result = run("detect", ply, "--out", tmp_path / f"r{readings}.json", "--readings", readings)
+        assert result.returncode == 0, result.stderr
+        caps[readings] = np.array([m["center"] for m in json.loads((tmp_path / f"r{readings}.json").read_text())
+                                   ["mushrooms"]])
+    assert len(caps[3]) == len(scene.centers)  # measured: all 6 found either way
+    assert not np.array_equal(np.sort(caps[1], 0), np.sort(caps[3], 0))  # the readings reached the network
+
+
 @pytest.mark.parametrize("case, fragment", [
     ("nan", "NaN or infinite"), ("empty", "empty"), ("missing", "does not exist"), ("format", "unsupported"),
     ("corrupt-model", "not a mushroom-pose weights file"), ("missing-model", "does not exist"),
@@ -309,6 +321,15 @@ def test_eval_prints_the_table_and_writes_json(tmp_path, weights, monkeypatch):
     assert json.loads((tmp_path / "z.json").read_text())["val50"]["dbscan"]["zoom"] == 1.3
     refused = run("eval", "--zoom", "3", "--model", weights)
     assert refused.returncode == 2 and "at most 2.0" in refused.stderr and "Traceback" not in refused.stderr
+    read_twice = run("eval", "--set", "val50", "--scenes", "1", "--model", weights, "--json", tmp_path / "r.json",
+                     "--readings", "2", "--quiet")
+    assert read_twice.returncode == 0, read_twice.stderr
+    assert "2 turned readings averaged" in read_twice.stdout
+    assert json.loads((tmp_path / "r.json").read_text())["val50"]["meanshift"]["readings"] == 2
+    for flags, fragment in ((["--readings", "0"], "must be positive"), (["--readings", "13"], "at most 12"),
+                            (["--table", "3", "--readings", "2"], "--table reads each bed once")):
+        refused = run("eval", *flags, "--model", weights)
+        assert refused.returncode == 2 and fragment in refused.stderr and len(refused.stderr.strip().splitlines()) == 1
 
 
 def test_eval_radius_fit_sizes_the_same_caps_by_the_ellipsoid(tmp_path, monkeypatch):

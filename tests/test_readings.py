@@ -30,8 +30,9 @@ def bed_points(model):
 
 
 def _turn(angle_deg: float) -> np.ndarray:
-    angle = np.radians(angle_deg)
-    return np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0.0, 0.0, 1.0]])
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_euler("z", angle_deg, degrees=True).as_matrix()
 
 
 @pytest.mark.parametrize("readings", [2, 3])

@@ -6,8 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipeline.commands.common import (CLUSTERING, SHIPPED_ZOOM, CliError, add_overwrite_flag, load_model, model_path,
-                                      READINGS, parse_readings, parse_zoom, refuse_to_replace, replace_file,
+from pipeline.commands.common import (CLUSTERING, READINGS, SHIPPED_ZOOM, CliError, add_overwrite_flag, load_model,
+                                      model_path, parse_readings, parse_zoom, refuse_to_replace, replace_file,
                                       writable_file)
 
 NAME = "detect"
@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
             if T_turned is not None:
                 T_input_bed, bed_points = T_turned, transform_points(np.linalg.inv(T_turned), points)
                 result = detect_points(model, bed_points, ClusterConfig(method=args.clustering), zoom=args.zoom,
-                               readings=args.readings)
+                                       readings=args.readings)
     except ValueError as error:
         raise CliError(str(error)) from None
     _refuse_unless_forced(args, too_many_caps(bed_points, len(result.caps)))
