@@ -75,7 +75,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--readings", type=int, default=READINGS, help="turned readings averaged per fused cloud "
                         f"(default {READINGS}, as the runner reads)")
-    parser.add_argument("--turns", type=int, default=1, help="also detect on each fused cloud turned by k x 90 "
+    parser.add_argument("--turns", type=int, default=1, choices=range(1, 5), help="also detect on each fused cloud turned by k x 90 "
                         "degrees about the vertical through its centroid, k = 1 .. N-1, and print AP@25 / AP@50 per "
                         "turn: how much a setting's figures owe to where the voxel grid falls over its caps")
     args = parser.parse_args()

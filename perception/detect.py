@@ -114,7 +114,7 @@ def reading_zoom(model: MushroomNet, points: np.ndarray) -> float:
 
 @torch.no_grad()
 def predict(model: MushroomNet, points: np.ndarray, thin: bool = True,
-            zoom: float | None = None, readings: int = 1) -> VoxelPrediction:
+            zoom: float | None = None, readings: int = READINGS) -> VoxelPrediction:
     """The network's encoding for a cloud in the bed frame; ``point_to_voxel`` covers every input point.
 
     The network was trained on clouds with one point per ``model.point_spacing`` (the synthetic
@@ -128,6 +128,8 @@ def predict(model: MushroomNet, points: np.ndarray, thin: bool = True,
     network reads the cloud that many times, turned about the vertical, and each voxel's encoding is
     the mean of the readings' (``READINGS`` says why).
     """
+    if readings < 1:
+        raise ValueError(f"readings must be at least 1, got {readings}")
     points = np.asarray(points, np.float64)
     if len(points) == 0:
         empty = np.zeros((0, 3))

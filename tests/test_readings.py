@@ -1,6 +1,9 @@
 """Turned readings (``predict(readings=N)``): each voxel's encoding is the mean of N readings of the
 cloud, each turned a further 360/N degrees about the vertical, with their centres turned back; the
-setting reaches detection from every command and the runner."""
+setting reaches detection from the runner, the perception process (test_perception_process.py), detect
+and eval (test_detect_cli.py) and replay."""
+
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -10,23 +13,23 @@ from common.geometry import voxel_representatives
 from helpers import tiny_network_config
 from perception.detect import detect_points, predict
 from perception.instances import ClusterConfig
-from perception.model import MushroomNet
+from perception.model import ENCODINGS, MushroomNet
 from perception.synthetic.scene import SceneConfig, generate_scene
 
 ZOOM = 1.1
 
 
-@pytest.fixture(scope="module")
-def model():
+@pytest.fixture(scope="module", params=ENCODINGS)
+def model(request):
     torch.manual_seed(0)
-    return MushroomNet(tiny_network_config()).eval()
+    return MushroomNet(replace(tiny_network_config(), encoding=request.param)).eval()
 
 
 @pytest.fixture(scope="module")
-def bed_points(model):
+def bed_points():
     """A bed with one point per voxel of the network's grid, so that a point's values are its voxel's."""
     points = generate_scene(4, SceneConfig(mushrooms=(6, 6))).points.astype(np.float64)
-    return points[voxel_representatives(points, model.config.voxel / ZOOM)]
+    return points[voxel_representatives(points, tiny_network_config().voxel / ZOOM)]
 
 
 def _turn(angle_deg: float) -> np.ndarray:
@@ -45,7 +48,8 @@ def test_each_point_takes_the_mean_of_the_turned_readings(model, bed_points, rea
         one = predict(model, (bed_points - pivot) @ rotation.T + pivot, thin=False, zoom=ZOOM)
         existence.append(one.existence[one.point_to_voxel])
         centers.append((one.centers[one.point_to_voxel] - pivot) @ rotation + pivot)
-        orientation.append(one.orientation[one.point_to_voxel])
+        turned_back = one.orientation[one.point_to_voxel]
+        orientation.append(turned_back @ rotation if turned_back.ndim == 2 else turned_back)  # axis vectors turn
     np.testing.assert_allclose(averaged.existence[averaged.point_to_voxel], np.mean(existence, 0), atol=1e-9)
     np.testing.assert_allclose(averaged.centers[averaged.point_to_voxel], np.mean(centers, 0), atol=1e-9)
     np.testing.assert_allclose(averaged.orientation[averaged.point_to_voxel], np.mean(orientation, 0), atol=1e-9)
@@ -53,9 +57,41 @@ def test_each_point_takes_the_mean_of_the_turned_readings(model, bed_points, rea
     assert np.abs(np.mean(centers, 0) - centers[0]).max() > 1e-4
 
 
-def test_one_reading_is_the_network_once(model, bed_points):
-    once, default = predict(model, bed_points, zoom=ZOOM, readings=1), predict(model, bed_points, zoom=ZOOM)
-    np.testing.assert_array_equal(once.centers, default.centers)
+def test_fewer_than_one_reading_is_refused(model, bed_points):
+    with pytest.raises(ValueError, match="at least 1"):
+        predict(model, bed_points, readings=0)
+
+
+def test_replay_and_detect_on_a_session_hand_their_readings_to_the_chain(monkeypatch, tmp_path):
+    import pipeline.session
+    from capture.mcap_io import McapRecorder, McapSource
+    from perception.detect import DEFAULT_WEIGHTS
+    from perception.train import load_weights
+    from pipeline.cli import build_parser
+    from pipeline.commands import detect
+    from pipeline.recordings import RECORDINGS_DIR
+    from pipeline.replay import ReplayOptions, run_replay
+
+    class ChainReached(Exception):
+        pass
+
+    readings = []
+
+    def chain(frames, model, config, outputs, **options):
+        readings.append(config.perception.readings)
+        raise ChainReached
+
+    monkeypatch.setattr(pipeline.session, "run_chain", chain)
+    session = RECORDINGS_DIR / "single-view.mcap"
+    with pytest.raises(ChainReached):
+        run_replay(session, load_weights(DEFAULT_WEIGHTS)[0], tmp_path, None, ReplayOptions(readings=3), quiet=True)
+    raw = tmp_path / "frames.mcap"  # frames alone: detect fuses them through the chain first
+    with McapSource(session) as frames, McapRecorder(raw) as recorder:
+        for frame, _ in zip(frames, range(2)):
+            recorder.write(frame)
+    with pytest.raises(ChainReached):
+        detect.run(build_parser().parse_args(["detect", str(raw), "--readings", "2", "--out", str(tmp_path / "d.json")]))
+    assert readings == [3, 2]
 
 
 def test_the_runner_reads_as_many_times_as_its_perception_stage_says():

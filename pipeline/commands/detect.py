@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
         result = detect_points(model, bed_points, ClusterConfig(method=args.clustering), zoom=args.zoom,
                                readings=args.readings)
         if frame == "input":  # the bed plane was found here: which side is up, the caps say
-            T_turned = _turned_by_caps(model, points, T_input_bed, result, args.zoom)
+            T_turned = _turned_by_caps(model, points, T_input_bed, result, args.zoom, args.readings)
             if T_turned is not None:
                 T_input_bed, bed_points = T_turned, transform_points(np.linalg.inv(T_turned), points)
                 result = detect_points(model, bed_points, ClusterConfig(method=args.clustering), zoom=args.zoom,
@@ -99,7 +99,7 @@ TURN_EVIDENCE = 4.0
 their right side fill thousands of voxels, seen from the wrong side almost none."""
 
 
-def _turned_by_caps(model, points, T_input_bed, result, zoom):
+def _turned_by_caps(model, points, T_input_bed, result, zoom, readings):
     """The bed frame turned over (180 degrees about its x axis) when the network sees far more caps that
     way: the plane's two sides are told apart by the cloud's caps, not by its soil relief or where the
     input's origin lies, which can mislead ``fusion.bed.up_side``. None when the frame stands."""
@@ -110,7 +110,8 @@ def _turned_by_caps(model, points, T_input_bed, result, zoom):
 
     T_turned = T_input_bed @ np.diag([1.0, -1.0, -1.0, 1.0])
     seen = int((result.voxels.existence > 0.5).sum())
-    turned = int((predict(model, transform_points(np.linalg.inv(T_turned), points), zoom=zoom).existence > 0.5).sum())
+    turned_points = transform_points(np.linalg.inv(T_turned), points)
+    turned = int((predict(model, turned_points, zoom=zoom, readings=readings).existence > 0.5).sum())
     return T_turned if turned > TURN_EVIDENCE * max(seen, 10) else None
 
 
@@ -177,7 +178,7 @@ def _detect_session(args: argparse.Namespace) -> int:
     source = McapSource(args.cloud)
     try:
         source.open()
-        summary = run_chain(source, model, RunConfig(perception=PerceptionStage(args.clustering)),
+        summary = run_chain(source, model, RunConfig(perception=PerceptionStage(args.clustering, args.readings)),
                             Outputs(rrd=rrd, detections=out, name=Path(args.cloud).name, quiet=True),
                             sensors=max(1, len(source.sensor_ids)))
     except (SourceError, ValueError) as error:
