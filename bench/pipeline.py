@@ -10,7 +10,7 @@
   RSS (this process and its children) every minute, the first and last 10 minutes' peaks, turns fused
   and detected, and frames recorded against frames captured.
 
-Usage: python bench/pipeline.py [--turns 20] [--soak-minutes 0 [--soak-speed 1]] [--threads 2]
+Usage: python bench/pipeline.py [--turns 20] [--soak-minutes 0 [--soak-speed 1]] [--threads 2] [--readings N]
 (--turns 0 runs the soak alone)
 """
 
@@ -35,7 +35,7 @@ import torch  # noqa: E402
 
 from capture.mcap_io import McapRecorder, McapSource  # noqa: E402
 from capture.source import Source  # noqa: E402
-from perception.detect import DEFAULT_WEIGHTS, detect_points  # noqa: E402
+from perception.detect import DEFAULT_WEIGHTS, READINGS, detect_points  # noqa: E402
 from perception.train import load_weights  # noqa: E402
 from pipeline.sources import VirtualBed, virtual_bed_source  # noqa: E402
 
@@ -61,16 +61,17 @@ def record_session(path: Path, turns: int) -> None:
             recorder.write(frame)
 
 
-def replay(session: Path, model, realtime: bool, out: Path):
+def replay(session: Path, model, realtime: bool, out: Path, readings: int):
     from pipeline.replay import ReplayOptions, run_replay
 
     out.mkdir()
     started = time.perf_counter()
-    result = run_replay(session, model, out, None, ReplayOptions(speed="realtime" if realtime else "max"), quiet=True)
+    options = ReplayOptions(speed="realtime" if realtime else "max", readings=readings)
+    result = run_replay(session, model, out, None, options, quiet=True)
     return result.summary, time.perf_counter() - started
 
 
-def batch_chain(session: Path, model) -> tuple[int, float]:
+def batch_chain(session: Path, model, readings: int) -> tuple[int, float]:
     """The chain as the demo ran it before the runner: read a whole turn, fuse it, detect."""
     from fusion.cloud import FusionConfig, fuse
 
@@ -79,7 +80,7 @@ def batch_chain(session: Path, model) -> tuple[int, float]:
         frames = list(source)
     for turn in range(0, len(frames), VIEWS):
         cloud = fuse(frames[turn:turn + VIEWS], FusionConfig(angles="pose"))
-        detect_points(model, cloud.points)
+        detect_points(model, cloud.points, readings=readings)
     return len(frames), time.perf_counter() - started
 
 
@@ -115,14 +116,15 @@ class CyclingTurns(Source):
         return frame
 
 
-def soak(model, minutes: float, speed: float, folder: Path) -> None:
+def soak(model, minutes: float, speed: float, folder: Path, readings: int) -> None:
     from capture.source import Paced
-    from pipeline.runner import RunConfig, Runner
+    from pipeline.runner import PerceptionStage, RunConfig, Runner
     from pipeline.sinks import McapSink
 
     source = CyclingTurns()
     recorder = McapRecorder(folder / "soak.mcap", chunk_size=4 << 20)
-    runner = Runner(Paced(source, speed) if speed > 0 else source, model, RunConfig(live=True), [McapSink(recorder)])
+    runner = Runner(Paced(source, speed) if speed > 0 else source, model,
+                    RunConfig(perception=PerceptionStage(readings=readings), live=True), [McapSink(recorder)])
     samples: list[tuple[float, float]] = []
     started = time.monotonic()
 
@@ -160,6 +162,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--soak-minutes", type=float, default=0.0)
     parser.add_argument("--soak-speed", type=float, default=1.0)
+    parser.add_argument("--readings", type=int, default=READINGS, help=f"readings per fused turn (default {READINGS})")
     args = parser.parse_args()
     reuse_freed_memory()
     torch.set_num_threads(args.threads)
@@ -167,13 +170,13 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench-pipeline-") as scratch:
         folder = Path(scratch)
         if args.turns == 0:
-            soak(model, args.soak_minutes, args.soak_speed, folder)
+            soak(model, args.soak_minutes, args.soak_speed, folder, args.readings)
             return
         session = folder / "session.mcap"
         record_session(session, args.turns)
         print(f"session: {args.turns} turns of {VIEWS} views, 848x480 at {FPS:g} fps, "
               f"{session.stat().st_size / 1e6:.1f} MB")
-        summary, wall = replay(session, model, realtime=True, out=folder / "realtime")
+        summary, wall = replay(session, model, realtime=True, out=folder / "realtime", readings=args.readings)
         latency = np.array([d.latency_seconds for d in summary.detections])
         perception = np.array([d.perception_seconds for d in summary.detections])
         fusion = np.array([d.fusion_seconds for d in summary.detections])
@@ -183,14 +186,14 @@ def main() -> None:
         print(f"  last frame to detections: median {np.median(latency):.2f} s (quartiles "
               f"{np.percentile(latency, 25):.2f}-{np.percentile(latency, 75):.2f}); of which the turn's last fusion "
               f"step {np.median(fusion):.2f} s and perception {np.median(perception):.2f} s (medians)")
-        summary, wall = replay(session, model, realtime=False, out=folder / "max")
-        count, batch_wall = batch_chain(session, model)
+        summary, wall = replay(session, model, realtime=False, out=folder / "max", readings=args.readings)
+        count, batch_wall = batch_chain(session, model, args.readings)
         print(f"max speed: runner {summary.frames / wall:.1f} frames/s ({wall:.1f} s), batch chain "
               f"{count / batch_wall:.1f} frames/s ({batch_wall:.1f} s): the runner takes "
               f"{wall / batch_wall:.2f}x the batch chain's time")
         print(f"peak RSS so far {rss_mb():.0f} MB (current)")
         if args.soak_minutes > 0:
-            soak(model, args.soak_minutes, args.soak_speed, folder)
+            soak(model, args.soak_minutes, args.soak_speed, folder, args.readings)
 
 
 if __name__ == "__main__":

@@ -70,9 +70,10 @@ turned another 360/N degrees about the vertical, their encodings averaged). The 
 each cap differently in every reading, and one reading's caps depend on how it falls. Four readings
 steady them on the real cloud of ../shared/real/ (F1 over six turns of the cloud 0.833-0.917 against
 0.816-0.898, bench/real.py --turns 6) and on val50/test50 (AP@50 and angle), but on bench/views.py's
-2-camera beds AP@25 falls from 97.1 to 96.3 %: caps that the unturned reading happens to find well,
-the turned ones find worse. So one reading is the default and ``--readings 4`` the choice where a
-steadier answer is worth four network passes (the model card gives both)."""
+2-camera beds AP@25 falls from 97.1 to 96.3 %, and in a live turntable run a turn's caps come 2.19 s
+after its last frame instead of 0.69 s, with 3 of 20 turns dropped (bench/pipeline.py --readings 4).
+So one reading is the default and ``--readings 4`` the choice where a steadier answer is worth four
+network passes (the model card gives both)."""
 
 OPERATING_SPACING = 0.0035
 """Metres: beyond this point spacing caps under 30 mm across are found less reliably (bench/range.py,
