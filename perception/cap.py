@@ -166,15 +166,16 @@ class Caps:
         return replace(self, centers=transform_points(T_frame_caps, self.centers),
                        rotations=T_frame_caps[:3, :3] @ self.rotations)
 
-    def to_document(self, frame: str) -> dict:
-        """The detection document: ``{"frame", "units": "m", "mushrooms": [one entry per cap]}``."""
+    def to_document(self, frame: str, readings: int) -> dict:
+        """The detection document: ``{"frame", "units": "m", "readings", "mushrooms": [one entry per cap]}``;
+        ``readings`` says how many turned readings of the cloud the caps come from (perception.detect)."""
         scores, members = self.score_array(), self.members if self.members is not None else np.zeros(len(self))
         caps = [{"id": k, "center": center.tolist(), "axis": rotation[:, 2].tolist(), "rotation": rotation.tolist(),
                  "radius": float(radius), "height": float(scale[2]), "cap_diameter_mm": 2000.0 * float(radius),
                  "score": float(score), "num_points": int(count)}
                 for k, (center, rotation, scale, radius, score, count) in
                 enumerate(zip(self.centers, self.rotations, self.scales, self.radii, scores, members))]
-        return {"frame": frame, "units": "m", "mushrooms": caps}
+        return {"frame": frame, "units": "m", "readings": readings, "mushrooms": caps}
 
     @staticmethod
     def from_document(document: dict) -> "Caps":

@@ -75,6 +75,10 @@ after its last frame instead of 0.69 s, with 3 of 20 turns dropped (bench/pipeli
 So one reading is the default and ``--readings 4`` the choice where a steadier answer is worth four
 network passes (the model card gives both)."""
 
+MAX_READINGS = 12
+"""The most readings a command takes: each is a pass of the network, and on the real cloud 8 readings
+steady the caps no more than 6 do (model card)."""
+
 OPERATING_SPACING = 0.0035
 """Metres: beyond this point spacing caps under 30 mm across are found less reliably (bench/range.py,
 caps 15-30 mm: AP@25 95.2 % at 3 mm, 82.3 % at 4 mm, 62.9 % at 5 mm)."""
@@ -129,8 +133,8 @@ def predict(model: MushroomNet, points: np.ndarray, thin: bool = True,
     network reads the cloud that many times, turned about the vertical, and each voxel's encoding is
     the mean of the readings' (``READINGS`` says why).
     """
-    if readings < 1:
-        raise ValueError(f"readings must be at least 1, got {readings}")
+    if not 1 <= readings <= MAX_READINGS:
+        raise ValueError(f"readings must be 1-{MAX_READINGS}, got {readings}")
     points = np.asarray(points, np.float64)
     if len(points) == 0:
         empty = np.zeros((0, 3))

@@ -30,9 +30,10 @@ class ReplayOptions:
     """One camera without a rig: fuse the last N frames, registered by ICP (default: each frame alone)."""
     clustering: Literal["meanshift", "dbscan"] = "meanshift"
     """How the network's cap-centre votes are grouped into caps."""
-    readings: int = 1
+    readings: int | None = None
     """How many times the network reads each fused cloud, turned a further 360/N degrees about the
-    vertical each time, its readings averaged: steadier caps for N network passes (4: see the model card)."""
+    vertical each time, its readings averaged (default: as often as the session's recorded detections
+    say they were read, once when they do not say)."""
 
     @property
     def realtime(self) -> bool:
@@ -68,6 +69,26 @@ def read_expected(path: Path) -> list[dict]:
         except ValueError as error:
             raise ReplayError(f"{path}, unit {unit}: {error}") from None
     return documents
+
+
+def recorded_readings(session: Path, expected: list[dict] | None) -> int:
+    """How many turned readings the session's detections (``expected``, else those it records) were made
+    with: their documents' ``readings``, 1 when they do not say; so that a replay reads as the run did."""
+    from capture.mcap_io import read_documents
+    from capture.source import SourceError
+    from perception.detect import MAX_READINGS
+
+    documents = expected
+    if documents is None and session.suffix == ".mcap":
+        try:
+            documents = [document for _, document in read_documents(session)]
+        except SourceError:
+            documents = []
+    said = {document.get("readings", 1) for document in documents or []} or {1}
+    if len(said) > 1 or not all(isinstance(n, int) and 1 <= n <= MAX_READINGS for n in said):
+        raise ReplayError(f"{session}: its detections say they were read {sorted(map(str, said))} times; "
+                          "give --readings")
+    return said.pop()
 
 
 def expected_documents(session: Path) -> list[dict]:
@@ -138,8 +159,12 @@ def run_replay(session: Path, model, out_dir: Path, rrd: Path | None, options: R
             raise ReplayError(f"{session} holds no fused clouds (/fusion/cloud with /fusion/unit): replay it from "
                               "--from-stage capture")
         recorded = tuple(FusedCloud.from_world(u.points, u.T_world_bed, u.frame_ids) for u in units)
+    readings = options.readings if options.readings is not None else recorded_readings(session, expected)
+    # a checked replay stops after as many units as it is checked against, as the run it replays stopped:
+    # a live run records the frames that came while its last unit was detected, and fuses none of them
     config = RunConfig(fusion=FusionStage(rig=rig, window=options.window, recorded=recorded),
-                       perception=PerceptionStage(options.clustering, options.readings), live=options.realtime)
+                       perception=PerceptionStage(options.clustering, readings), live=options.realtime,
+                       max_units=len(expected) if check is not None else None)
     outputs = Outputs(record=out_dir / "replay.mcap", rrd=rrd, detections=out_dir / "detections.json",
                       name=f"replay of {session.name}", quiet=quiet)
     frames = Paced(source) if options.realtime else source

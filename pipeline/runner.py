@@ -305,7 +305,7 @@ class Runner:
                          else detect_points(self.model, cloud.points, clustering, readings=readings))
                 result = transform_result(found, cloud.T_world_bed, "world")
                 now = time.perf_counter()
-                detection = Detection(unit, result, result.caps.to_document("world"), now - started,
+                detection = Detection(unit, result, result.caps.to_document("world", readings), now - started,
                                       now - unit.last_arrival)
                 self.summary.detections.append(DetectionRecord.of(detection))
                 self.summary.last_detection = detection

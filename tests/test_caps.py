@@ -19,7 +19,7 @@ def _caps(n: int, seed: int = 0) -> Caps:
 
 def test_the_detection_document_round_trips_through_json_text():
     caps = _caps(7)
-    document = json.loads(json.dumps(caps.to_document("world")))
+    document = json.loads(json.dumps(caps.to_document("world", 1)))
     assert document["frame"] == "world" and document["units"] == "m"
     assert [c["id"] for c in document["mushrooms"]] == list(range(7))
     back = Caps.from_document(document)
@@ -31,7 +31,7 @@ def test_the_detection_document_round_trips_through_json_text():
 
 
 def test_no_caps_round_trip_too():
-    back = Caps.from_document(json.loads(json.dumps(Caps.none().to_document("bed"))))
+    back = Caps.from_document(json.loads(json.dumps(Caps.none().to_document("bed", 1))))
     assert len(back) == 0 and back.centers.shape == (0, 3) and back.rotations.shape == (0, 3, 3)
 
 

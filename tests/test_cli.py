@@ -184,7 +184,8 @@ class Example:
 def test_the_parser_restates_its_choices_as_the_libraries_define_them():
     from perception.instances import METHODS
     from perception.synthetic.scene import VISIBILITY_MODELS
-    from pipeline.commands.common import CAMERAS, CLUSTERING, READINGS, SHIPPED_ZOOM, SPACING_HELP, VISIBILITY
+    from pipeline.commands.common import (CAMERAS, CLUSTERING, MAX_READINGS, READINGS, SHIPPED_ZOOM, SPACING_HELP,
+                                          VISIBILITY)
     from perception import detect
     from perception.detect import DEFAULT_WEIGHTS
     from perception.synthetic.scene import SceneConfig
@@ -197,7 +198,9 @@ def test_the_parser_restates_its_choices_as_the_libraries_define_them():
     from pipeline.replay import ReplayOptions
     from pipeline.runner import PerceptionStage
 
-    assert READINGS == detect.READINGS == PerceptionStage.readings == ReplayOptions.readings
+    assert READINGS == detect.READINGS == PerceptionStage.readings
+    assert ReplayOptions.readings is None  # a replay reads as often as the session's detections say
+    assert MAX_READINGS == detect.MAX_READINGS
 
 
 def test_building_the_parser_imports_no_heavy_library():

@@ -65,6 +65,18 @@ def test_live_virtual_turn_is_recorded_fused_detected_and_logged(tmp_path):
         assert [t for name, t in in_file_order if name == topic] == [frames[0].timestamp_ns, frames[5].timestamp_ns]
 
 
+def test_a_live_session_replays_to_the_caps_it_recorded(tmp_path):
+    """The frames that came while the last turn was detected are recorded but were never fused, and the
+    session was read twice: replay --check reads it as the run did and finds the same caps."""
+    result = run("live", "--camera", "virtual", "--views", 6, "--turns", 1, "--readings", 2, "--record",
+                 tmp_path / "s.mcap", "--quiet")
+    assert result.returncode == 0, result.stderr
+    assert read_documents(tmp_path / "s.mcap")[0][1]["readings"] == 2
+    replayed = run("replay", tmp_path / "s.mcap", "--check", "--out", tmp_path / "replay")
+    assert replayed.returncode == 0, replayed.stdout + replayed.stderr
+    assert "check PASS" in replayed.stdout and "0 changed, 0 lost, 0 gained" in replayed.stdout
+
+
 def test_sigterm_during_live_finalises_every_output(tmp_path):
     command = [sys.executable, "-m", "pipeline.cli", "live", "--camera", "virtual", "--views", 400,
                "--record", tmp_path / "s.mcap", "--rrd", tmp_path / "s.rrd", "--quiet"]

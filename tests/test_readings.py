@@ -57,41 +57,72 @@ def test_each_point_takes_the_mean_of_the_turned_readings(model, bed_points, rea
     assert np.abs(np.mean(centers, 0) - centers[0]).max() > 1e-4
 
 
-def test_fewer_than_one_reading_is_refused(model, bed_points):
-    with pytest.raises(ValueError, match="at least 1"):
-        predict(model, bed_points, readings=0)
+def test_fewer_than_one_or_more_than_twelve_readings_are_refused(model, bed_points):
+    for readings in (0, 13):
+        with pytest.raises(ValueError, match="readings must be 1-12"):
+            predict(model, bed_points, readings=readings)
 
 
-def test_replay_and_detect_on_a_session_hand_their_readings_to_the_chain(monkeypatch, tmp_path):
-    import pipeline.session
-    from capture.mcap_io import McapRecorder, McapSource
-    from perception.detect import DEFAULT_WEIGHTS
-    from perception.train import load_weights
-    from pipeline.cli import build_parser
-    from pipeline.commands import detect
+def _frames_and_documents(path, documents):
+    """A session with the first two frames of a recording and these detection documents."""
+    from capture.mcap_io import DETECTIONS_TOPIC, McapRecorder, McapSource
     from pipeline.recordings import RECORDINGS_DIR
-    from pipeline.replay import ReplayOptions, run_replay
+
+    with McapSource(RECORDINGS_DIR / "single-view.mcap") as frames, McapRecorder(path) as recorder:
+        for frame, _ in zip(frames, range(2)):
+            recorder.write(frame)
+        for k, document in enumerate(documents):
+            recorder.write_json(DETECTIONS_TOPIC, document, frame.timestamp_ns + k)
+    return path
+
+
+@pytest.fixture()
+def chain_readings(monkeypatch):
+    """The readings each run of the chain was asked for; the chain itself stops at once."""
+    import pipeline.session
 
     class ChainReached(Exception):
         pass
 
-    readings = []
+    asked = []
 
     def chain(frames, model, config, outputs, **options):
-        readings.append(config.perception.readings)
+        asked.append(config.perception.readings)
         raise ChainReached
 
     monkeypatch.setattr(pipeline.session, "run_chain", chain)
-    session = RECORDINGS_DIR / "single-view.mcap"
-    with pytest.raises(ChainReached):
-        run_replay(session, load_weights(DEFAULT_WEIGHTS)[0], tmp_path, None, ReplayOptions(readings=3), quiet=True)
-    raw = tmp_path / "frames.mcap"  # frames alone: detect fuses them through the chain first
-    with McapSource(session) as frames, McapRecorder(raw) as recorder:
-        for frame, _ in zip(frames, range(2)):
-            recorder.write(frame)
-    with pytest.raises(ChainReached):
+    return asked, ChainReached
+
+
+def test_replay_reads_as_often_as_the_session_was_read_unless_told(tmp_path, chain_readings):
+    from perception.detect import DEFAULT_WEIGHTS
+    from perception.train import load_weights
+    from pipeline.recordings import RECORDINGS_DIR
+    from pipeline.replay import ReplayError, ReplayOptions, run_replay
+
+    asked, reached = chain_readings
+    model = load_weights(DEFAULT_WEIGHTS)[0]
+    three = _frames_and_documents(tmp_path / "three.mcap", [{"readings": 3, "frame": "world", "mushrooms": []}])
+    unsaid = RECORDINGS_DIR / "single-view.mcap"  # its detections do not say: read once
+    for session, options in ((three, ReplayOptions()), (three, ReplayOptions(readings=2)), (unsaid, ReplayOptions())):
+        with pytest.raises(reached):
+            run_replay(session, model, tmp_path / "out", None, options, quiet=True)
+    assert asked == [3, 2, 1]
+    mixed = _frames_and_documents(tmp_path / "mixed.mcap", [{"readings": 3, "mushrooms": []},
+                                                             {"readings": 1, "mushrooms": []}])
+    with pytest.raises(ReplayError, match="give --readings"):
+        run_replay(mixed, model, tmp_path / "out", None, ReplayOptions(), quiet=True)
+
+
+def test_detect_on_a_raw_session_hands_its_readings_to_the_chain(tmp_path, chain_readings):
+    from pipeline.cli import build_parser
+    from pipeline.commands import detect
+
+    asked, reached = chain_readings
+    raw = _frames_and_documents(tmp_path / "frames.mcap", [])  # frames alone: detect fuses them first
+    with pytest.raises(reached):
         detect.run(build_parser().parse_args(["detect", str(raw), "--readings", "2", "--out", str(tmp_path / "d.json")]))
-    assert readings == [3, 2]
+    assert asked == [2]
 
 
 def test_the_runner_reads_as_many_times_as_its_perception_stage_says():
@@ -117,6 +148,7 @@ def test_the_runner_reads_as_many_times_as_its_perception_stage_says():
         summary = Runner(Frames(), shipped, RunConfig(perception=PerceptionStage(readings=readings)), []).run()
         cloud = summary.last_unit.cloud
         found[readings] = summary.last_detection.result
+        assert summary.last_detection.document["readings"] == readings  # the document says how it was read
         direct = detect_points(shipped, cloud.points, ClusterConfig(), readings=readings)
         np.testing.assert_allclose(found[readings].voxels.existence, direct.voxels.existence, atol=1e-9)
     assert not np.allclose(found[1].voxels.existence, found[3].voxels.existence)

@@ -167,7 +167,9 @@ parse_run_fraction = at_most(positive(float), 1.0, " (a fraction of the run's it
 parse_mushroom_count = at_most(non_negative(int), MAX_MUSHROOMS, " (a 0.5 m bed is full at about 260)")
 parse_spacing = at_least(at_most(positive(float), 0.02, " metres (0.003 is 3 mm)"), 0.001,
                          " metres: a finer spacing only multiplies the points (0.003 is 3 mm)")
-parse_readings = at_most(positive(int), 12, " (each reading is a pass of the network)")
+MAX_READINGS = 12
+"""perception.detect.MAX_READINGS: the most turned readings detection takes."""
+parse_readings = at_most(positive(int), MAX_READINGS, " (each reading is a pass of the network)")
 parse_zoom = at_least(at_most(positive(float), 2.0, " (the network would read caps twice their size)"), 0.5,
                       " (the network would read caps half their size)")
 

@@ -84,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"{len(result.caps)} caps in {args.cloud} ({len(points)} points, frame: {frame}, metres)")
     _print_caps(result, T_input_bed[:3, 2])
     _warn_outside_range(model, bed_points, result, args.cloud)
-    payload = {**result.caps.to_document(frame), "T_input_bed": T_input_bed.tolist()}
+    payload = {**result.caps.to_document(frame, args.readings), "T_input_bed": T_input_bed.tolist()}
     replace_file(out, json.dumps(payload, indent=1))
     with rerun_stream(rrd) as rec:
         if rec is not None:
