@@ -84,11 +84,11 @@ def recorded_readings(session: Path, expected: list[dict] | None) -> int:
             documents = [document for _, document in read_documents(session)]
         except SourceError:
             documents = []
-    said = {document.get("readings", 1) for document in documents or []} or {1}
-    if len(said) > 1 or not all(isinstance(n, int) and 1 <= n <= MAX_READINGS for n in said):
-        raise ReplayError(f"{session}: its detections say they were read {sorted(map(str, said))} times; "
-                          "give --readings")
-    return said.pop()
+    said = [document.get("readings", 1) if isinstance(document, dict) else None for document in documents or []]
+    if not all(type(n) is int and 1 <= n <= MAX_READINGS for n in said) or len({*said}) > 1:
+        counts = ", ".join(sorted({repr(n) for n in said}))
+        raise ReplayError(f"{session}: its detections do not say one number of readings ({counts}); give --readings")
+    return said[0] if said else 1
 
 
 def expected_documents(session: Path) -> list[dict]:

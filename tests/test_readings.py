@@ -110,8 +110,11 @@ def test_replay_reads_as_often_as_the_session_was_read_unless_told(tmp_path, cha
     assert asked == [3, 2, 1]
     mixed = _frames_and_documents(tmp_path / "mixed.mcap", [{"readings": 3, "mushrooms": []},
                                                              {"readings": 1, "mushrooms": []}])
-    with pytest.raises(ReplayError, match="give --readings"):
+    with pytest.raises(ReplayError, match=r"do not say one number of readings \(1, 3\); give --readings"):
         run_replay(mixed, model, tmp_path / "out", None, ReplayOptions(), quiet=True)
+    garbled = _frames_and_documents(tmp_path / "garbled.mcap", [{"readings": [4], "mushrooms": []}])
+    with pytest.raises(ReplayError, match=r"\(\[4\]\); give --readings"):
+        run_replay(garbled, model, tmp_path / "out", None, ReplayOptions(), quiet=True)
 
 
 def test_detect_on_a_raw_session_hands_its_readings_to_the_chain(tmp_path, chain_readings):
