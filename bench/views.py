@@ -18,14 +18,13 @@ from pathlib import Path
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 
 import argparse  # noqa: E402
-import dataclasses  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from capture.source import Source  # noqa: E402
-from common.geometry import turn_about_z  # noqa: E402
+from common.geometry import transform_points, turn_about_z  # noqa: E402
 from perception.detect import DEFAULT_WEIGHTS, READINGS, detect_points  # noqa: E402
 from perception.cap import Caps  # noqa: E402
 from perception.evaluate import evaluate  # noqa: E402
@@ -60,12 +59,11 @@ class Frames(Source):
 def turned_caps(model, fused, degrees: float, readings: int) -> Caps:
     """The caps ``detect_points`` finds in a fused cloud turned by ``degrees`` about the vertical through
     its centroid (bed frame), turned back and given in the world frame, as the runner gives them."""
-    rotation = turn_about_z(np.radians(degrees))
-    pivot = fused.points.mean(0)
-    caps = detect_points(model, (fused.points - pivot) @ rotation.T + pivot, readings=readings).caps
-    back = dataclasses.replace(caps, centers=(caps.centers - pivot) @ rotation + pivot,
-                               rotations=rotation.T @ caps.rotations)
-    return back.moved(fused.T_world_bed)
+    T_turned_bed = np.eye(4)
+    T_turned_bed[:3, :3] = turn_about_z(np.radians(degrees))
+    T_turned_bed[:3, 3] = fused.points.mean(0) - T_turned_bed[:3, :3] @ fused.points.mean(0)
+    caps = detect_points(model, transform_points(T_turned_bed, fused.points), readings=readings).caps
+    return caps.moved(fused.T_world_bed @ np.linalg.inv(T_turned_bed))
 
 
 def main() -> None:
@@ -75,9 +73,10 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--readings", type=int, default=READINGS, help="turned readings averaged per fused cloud "
                         f"(default {READINGS}, as the runner reads)")
-    parser.add_argument("--turns", type=int, default=1, choices=range(1, 5), help="also detect on each fused cloud turned by k x 90 "
-                        "degrees about the vertical through its centroid, k = 1 .. N-1, and print AP@25 / AP@50 per "
-                        "turn: how much a setting's figures owe to where the voxel grid falls over its caps")
+    parser.add_argument("--turns", type=int, default=1, choices=range(1, 5),
+                        help="also detect on each fused cloud turned by k x 90 degrees about the vertical through "
+                             "its centroid, k = 1 .. N-1, and print AP@25 / AP@50 per turn: how much a setting's "
+                             "figures owe to where the voxel grid falls over its caps")
     args = parser.parse_args()
     reuse_freed_memory()
     torch.set_num_threads(args.threads)
