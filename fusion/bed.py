@@ -73,14 +73,19 @@ def up_side(normal: np.ndarray, heights: np.ndarray, distance: float, normals: n
 
 
 def _robust_plane(points: np.ndarray, normal: np.ndarray, offset: float, scale: float,
-                  iterations: int = 8) -> tuple[np.ndarray, float]:
+                  max_iterations: int = 100, settled: float = 1e-12) -> tuple[np.ndarray, float]:
     """The plane refined by Tukey-weighted least squares over everything within ``scale`` of it.
 
     RANSAC alone maximises the points within a thin band, which on cloddy soil (a few centimetres of
     relief) tilted the plane by 1.8-3.1 degrees on tilted virtual beds; with a scale of about 5 cm
     the weighted fit came within 1 degree of the soil's least-squares plane, caps and all.
+
+    The refinement runs until the plane settles (moves less than ``settled``) and is rounded to a
+    nanometre, so that where it ends does not depend on where it started: Open3D's RANSAC searches in parallel threads and gives a
+    plane a few hundredths off from one run to the next on the same points, and a replay must fuse
+    the session's clouds as the run did.
     """
-    for _ in range(iterations):
+    for _ in range(max_iterations):
         residual = points @ normal + offset
         weight = np.clip(1.0 - (residual / scale) ** 2, 0.0, None) ** 2
         if weight.sum() <= 0:
@@ -88,6 +93,11 @@ def _robust_plane(points: np.ndarray, normal: np.ndarray, offset: float, scale: 
         centroid = weight @ points / weight.sum()
         centred = (points - centroid) * np.sqrt(weight)[:, None]
         fitted = np.linalg.eigh(centred.T @ centred)[1][:, 0]
-        normal = fitted if fitted @ normal >= 0 else -fitted
-        offset = -float(normal @ centroid)
-    return normal, offset
+        fitted = fitted if fitted @ normal >= 0 else -fitted
+        moved = max(float(np.abs(fitted - normal).max()), abs(offset + float(fitted @ centroid)))
+        normal, offset = fitted, -float(fitted @ centroid)
+        if moved < settled:
+            break
+    # what is left of where it started (about 1e-13) is rounded away: a nanometre means nothing on a bed
+    normal = np.round(normal, 9)
+    return normal / np.linalg.norm(normal), round(offset, 9)
