@@ -4,13 +4,15 @@ with the shipped model, recorded with the detections they are expected to give.
     python -m pipeline.recordings [NAME ...] [--out recordings] [--model PATH]
 
 makes the named recordings (default: all) and says, per recording, whether its expected detections
-changed, so that a changed model or chain is a visible decision in the diff.
+changed, so that a changed model or chain is a visible decision in the diff. A session whose caps stay
+within the check's tolerances is kept as it was, session and expectations both.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
 from dataclasses import dataclass
@@ -137,21 +139,21 @@ def main(argv: list[str] | None = None) -> int:
     for recording in RECORDINGS:
         if args.names and recording.name not in args.names:
             continue
-        previous_text = None
         sidecar = expected_path(args.out / recording.file)
-        if sidecar.is_file():
-            previous_text = sidecar.read_text()
-        target, documents = make_recording(recording, args.out, model)
-        size = target.stat().st_size / 1e6
-        if previous_text is None:
+        previous = json.loads(sidecar.read_text()) if sidecar.is_file() else None
+        with tempfile.TemporaryDirectory(dir=args.out) as scratch:
+            made, documents = make_recording(recording, Path(scratch), model)
+            size = made.stat().st_size / 1e6
+            report = compare(previous, documents) if previous is not None else None
+            if report is None or not report.passed:  # within the check's tolerances: keep the session as it was
+                os.replace(made, args.out / recording.file)
+                os.replace(expected_path(made), sidecar)
+        if report is None:
             verdict = "new expected detections"
         else:
-            report = compare(json.loads(previous_text), documents)
-            if report.passed:  # within the check's tolerances: keep the file, not last-digit noise
-                write_atomically(sidecar, previous_text)
-            verdict = "expected detections unchanged" if report.passed else \
+            verdict = "expected detections unchanged (the session is kept)" if report.passed else \
                 "EXPECTED DETECTIONS CHANGED:\n" + report.table()
-        print(f"{target.name}: {size:.1f} MB, caps per unit {_caps_summary(documents)}; {verdict}")
+        print(f"{recording.file}: {size:.1f} MB, caps per unit {_caps_summary(documents)}; {verdict}")
     return 0
 
 

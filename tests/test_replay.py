@@ -124,11 +124,16 @@ def test_replay_bad_sessions_fail_in_one_line(tmp_path, case, fragment):
 def test_recordings_are_remade_identically(tmp_path, capsys):
     """The maker's recording of a session gives the caps stored in recordings/ (the model and chain are
     those the expectations were made with); a changed expectation would be printed, and an unchanged
-    one keeps its file as it was."""
+    one keeps its session and expectations as they were (a new session's caps would not be the
+    expectations kept beside it)."""
     from pipeline.recordings import main
 
-    shutil.copy(expected_path(RECORDINGS_DIR / "single-view.mcap"), tmp_path)
+    session = RECORDINGS_DIR / "single-view.mcap"
+    kept = b"the session as it was recorded"  # the maker reads only the expectations, never the old session
+    (tmp_path / session.name).write_bytes(kept)
+    shutil.copy(expected_path(session), tmp_path)
     assert main(["single-view", "--out", str(tmp_path)]) == 0
     assert "expected detections unchanged" in capsys.readouterr().out
-    remade = expected_path(tmp_path / "single-view.mcap").read_bytes()
-    assert remade == expected_path(RECORDINGS_DIR / "single-view.mcap").read_bytes()
+    assert expected_path(tmp_path / session.name).read_bytes() == expected_path(session).read_bytes()
+    assert (tmp_path / session.name).read_bytes() == kept
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([session.name, expected_path(session).name])
