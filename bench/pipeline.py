@@ -35,7 +35,7 @@ import torch  # noqa: E402
 
 from capture.mcap_io import McapRecorder, McapSource  # noqa: E402
 from capture.source import Source  # noqa: E402
-from perception.detect import DEFAULT_WEIGHTS, READINGS, detect_points  # noqa: E402
+from perception.detect import DEFAULT_WEIGHTS, LIVE_READINGS, detect_points  # noqa: E402
 from perception.train import load_weights  # noqa: E402
 from pipeline.sources import VirtualBed, virtual_bed_source  # noqa: E402
 
@@ -162,7 +162,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--soak-minutes", type=float, default=0.0)
     parser.add_argument("--soak-speed", type=float, default=1.0)
-    parser.add_argument("--readings", type=int, default=READINGS, help=f"readings per fused turn (default {READINGS})")
+    parser.add_argument("--readings", type=int, default=LIVE_READINGS, help=f"readings per fused turn (default {LIVE_READINGS})")
     args = parser.parse_args()
     reuse_freed_memory()
     torch.set_num_threads(args.threads)

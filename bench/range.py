@@ -18,7 +18,7 @@ import time  # noqa: E402
 import torch  # noqa: E402
 
 from perception.cap import CAP_RADIUS_AT_UNIT_SCALE  # noqa: E402
-from perception.detect import DEFAULT_WEIGHTS, READINGS, find_caps, predict  # noqa: E402
+from perception.detect import DEFAULT_WEIGHTS, FILE_READINGS, find_caps, predict  # noqa: E402
 from perception.cap import Caps  # noqa: E402
 from perception.evaluate import evaluate  # noqa: E402
 from perception.synthetic.dataset import ground_truth_mask  # noqa: E402
@@ -47,7 +47,7 @@ def main() -> None:
     parser.add_argument("--diameters", type=int, nargs="+", help="only the bins starting at these diameters (mm)")
     parser.add_argument("--model", type=Path, default=DEFAULT_WEIGHTS)
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--readings", type=int, default=READINGS, help=f"turned readings averaged (default {READINGS}, "
+    parser.add_argument("--readings", type=int, default=FILE_READINGS, help=f"turned readings averaged (default {FILE_READINGS}, "
                         "as detect reads)")
     args = parser.parse_args()
     reuse_freed_memory()

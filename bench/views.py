@@ -25,7 +25,7 @@ import torch  # noqa: E402
 
 from capture.source import Source  # noqa: E402
 from common.geometry import transform_points, turn_about_z  # noqa: E402
-from perception.detect import DEFAULT_WEIGHTS, READINGS, detect_points  # noqa: E402
+from perception.detect import DEFAULT_WEIGHTS, LIVE_READINGS, detect_points  # noqa: E402
 from perception.cap import Caps  # noqa: E402
 from perception.evaluate import evaluate  # noqa: E402
 from perception.train import load_weights  # noqa: E402
@@ -71,8 +71,8 @@ def main() -> None:
     parser.add_argument("--beds", type=int, default=10)
     parser.add_argument("--model", type=Path, default=DEFAULT_WEIGHTS)
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--readings", type=int, default=READINGS, help="turned readings averaged per fused cloud "
-                        f"(default {READINGS}, as the runner reads)")
+    parser.add_argument("--readings", type=int, default=LIVE_READINGS, help="turned readings averaged per fused cloud "
+                        f"(default {LIVE_READINGS}, as the runner reads)")
     parser.add_argument("--turns", type=int, default=1, choices=range(1, 5),
                         help="also detect on each fused cloud turned by k x 90 degrees about the vertical through "
                              "its centroid, k = 1 .. N-1, and print AP@25 / AP@50 per turn: how much a setting's "

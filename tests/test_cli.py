@@ -184,7 +184,7 @@ class Example:
 def test_the_parser_restates_its_choices_as_the_libraries_define_them():
     from perception.instances import METHODS
     from perception.synthetic.scene import VISIBILITY_MODELS
-    from pipeline.commands.common import (CAMERAS, CLUSTERING, MAX_READINGS, READINGS, SHIPPED_ZOOM, SPACING_HELP,
+    from pipeline.commands.common import (CAMERAS, CLUSTERING, FILE_READINGS, MAX_READINGS, SHIPPED_ZOOM, SPACING_HELP,
                                           VISIBILITY)
     from perception import detect
     from perception.detect import DEFAULT_WEIGHTS
@@ -198,7 +198,8 @@ def test_the_parser_restates_its_choices_as_the_libraries_define_them():
     from pipeline.replay import ReplayOptions
     from pipeline.runner import PerceptionStage
 
-    assert READINGS == detect.READINGS == PerceptionStage.readings
+    assert FILE_READINGS == detect.FILE_READINGS
+    assert detect.LIVE_READINGS == PerceptionStage.readings  # the runner reads as the library does
     assert ReplayOptions.readings is None  # a replay reads as often as the session's detections say
     assert MAX_READINGS == detect.MAX_READINGS
 

@@ -7,12 +7,12 @@ from perception.train import load_weights
 
 FLOORS = {
     # Measured, pooled over val50 beds 0-4 (these) and, for the spread, over beds 5-9:
-    #   meanshift  AP@25 100.00 / 100.00 %  AP@50 98.15 / 100.00 %  angle 4.48 / 2.35 deg  scale 3.60 / 4.06 %
-    #   dbscan     AP@25 97.30 / 98.85 %    AP@50 94.03 / 97.43 %   angle 4.90 / 2.26 deg  scale 3.12 / 3.64 %
+    #   meanshift  AP@25 100.00 / 99.99 %   AP@50 100.00 / 99.99 %  angle 3.80 / 2.55 deg  scale 3.48 / 4.14 %
+    #   dbscan     AP@25 97.28 / 98.85 %    AP@50 97.28 / 97.54 %   angle 3.90 / 2.48 deg  scale 2.88 / 3.85 %
     # Bounds: the worst AP less about two caps of the 75 (2.7 points), rounded down; the worst angle and
     # scale error times 1.5, rounded down.
-    "meanshift": {"ap25": 0.97, "ap50": 0.95, "angle_deg": 6.7, "scale_err": 0.06},
-    "dbscan": {"ap25": 0.94, "ap50": 0.91, "angle_deg": 7.3, "scale_err": 0.054},
+    "meanshift": {"ap25": 0.97, "ap50": 0.97, "angle_deg": 5.7, "scale_err": 0.062},
+    "dbscan": {"ap25": 0.94, "ap50": 0.94, "angle_deg": 5.8, "scale_err": 0.057},
 }
 
 

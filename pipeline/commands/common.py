@@ -179,8 +179,8 @@ SPACING_HELP = "0.003, the generator's: every 4.5 mm voxel a surface crosses hol
 """SceneConfig.spacing and what it gives."""
 SHIPPED_ZOOM = 1.2
 """The zoom the shipped model's weights record (trained with --scale-jitter 1.05 1.35)."""
-READINGS = 1
-"""perception.detect.READINGS: how many turned readings of a cloud detection averages."""
+FILE_READINGS = 4
+"""perception.detect.FILE_READINGS: how many turned readings of a cloud ``detect`` and ``eval`` average."""
 CLUSTERING = ("meanshift", "dbscan")
 """perception.instances.METHODS: how voted centres are grouped into caps."""
 CAMERAS = ("realsense", "oak", "virtual")

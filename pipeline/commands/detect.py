@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipeline.commands.common import (CLUSTERING, READINGS, SHIPPED_ZOOM, CliError, add_overwrite_flag, load_model,
+from pipeline.commands.common import (CLUSTERING, FILE_READINGS, SHIPPED_ZOOM, CliError, add_overwrite_flag, load_model,
                                       model_path, parse_readings, parse_zoom, refuse_to_replace, replace_file,
                                       writable_file)
 
@@ -24,9 +24,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--zoom", type=parse_zoom, help="scale the network reads the cloud at (default: the one "
                         f"the weights record, {SHIPPED_ZOOM} for the shipped model, lowered for clouds sparser than "
                         "its training beds)")
-    parser.add_argument("--readings", type=parse_readings, default=READINGS, metavar="N",
+    parser.add_argument("--readings", type=parse_readings, default=FILE_READINGS, metavar="N",
                         help="read the cloud N times, turned about the vertical, and average what the network "
-                             f"sees (default {READINGS}; 4 gives steadier caps for four network passes)")
+                             f"sees (default {FILE_READINGS}: steadier caps than one reading gives; 1 is "
+                             "fastest)")
     parser.add_argument("--units", choices=["auto", "m", "cm", "mm"], default="auto",
                         help="the cloud's length unit (default auto: the one in which its point spacing and width "
                              "are a bed's; a .npz scene is in metres)")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from pipeline.commands.common import (READINGS, SHIPPED_ZOOM, SPACING_HELP, VISIBILITY, CliError, add_overwrite_flag,
+from pipeline.commands.common import (FILE_READINGS, SHIPPED_ZOOM, SPACING_HELP, VISIBILITY, CliError, add_overwrite_flag,
                                       add_ray_flag, json_text, load_model, model_path, parse_readings, parse_spacing,
                                       parse_zoom, positive, ray_options, refuse_to_replace, replace_file, writable_file)
 
@@ -36,9 +36,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--zoom", type=parse_zoom, help="scale the network reads clouds at (default: the one the "
                         f"weights record, {SHIPPED_ZOOM} for the shipped model, 1.1 for weights that record none; "
                         "lowered for beds sparser than the training beds)")
-    parser.add_argument("--readings", type=parse_readings, default=READINGS, metavar="N",
+    parser.add_argument("--readings", type=parse_readings, metavar="N",
                         help="read each bed N times, turned about the vertical, and average what the network "
-                             f"sees (default {READINGS}, as detect reads)")
+                             f"sees (default {FILE_READINGS}, as detect reads; the paper's tables read once)")
     parser.add_argument("--scenes", type=positive(int), help="only the first N scenes of each set")
     parser.add_argument("--table", nargs="+", choices=["1", "2", "3", "4", "all"],
                         help="the paper's tables instead (section 4.2), ours beside its figures with ms per bed: "
@@ -76,8 +76,9 @@ def run(args: argparse.Namespace) -> int:
     from perception.detect import evaluate_on_scenes
     from perception.synthetic.dataset import load_preset, preset_config
 
-    if args.table and args.readings != READINGS:
+    if args.table and args.readings is not None:
         raise CliError("--table reads each bed once, as the paper does: drop --readings")
+    readings = args.readings or FILE_READINGS
     json_path = writable_file(args.json, inputs=(model_path(args.model),))
     model, meta = load_model(args.model)
     refuse_to_replace([json_path], args.overwrite)
@@ -85,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
         return _paper_tables(args, model, json_path)
     zoom = args.zoom
     read_at = (f"zoom {zoom:g}" if zoom is not None else f"zoom {model.inference_zoom:g}, lower where sparser") + \
-        (f", {args.readings} turned readings averaged" if args.readings > 1 else "")
+        (f", {readings} turned readings averaged" if readings > 1 else "")
     report = {}
     for name in args.set:
         try:
@@ -95,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
             raise CliError(str(error)) from None
         results = evaluate_on_scenes(model, scenes, height=args.height, axis=args.axis, radius=args.radius,
                                      progress=not args.quiet,
-                                     zoom=zoom, readings=args.readings, **ray_options(args))
+                                     zoom=zoom, readings=readings, **ray_options(args))
         label = name + (f" at {1000 * args.spacing:g} mm spacing" if args.spacing else "") + \
             f", read at {read_at}" + \
             (f" (first {len(scenes)} scenes)" if args.scenes else "")
@@ -103,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
         spacing = preset_config(name, args.visibility, args.spacing).spacing
         report[name] = {method: {**result.as_dict(), "spacing": spacing, "zoom": zoom or model.inference_zoom,
                                  "zoom_lowered_where_sparser": zoom is None,
-                                 "readings": args.readings}
+                                 "readings": readings}
                         for method, result in results.items()}
     if json_path is not None:
         replace_file(json_path, json_text(report))
