@@ -162,7 +162,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--soak-minutes", type=float, default=0.0)
     parser.add_argument("--soak-speed", type=float, default=1.0)
-    parser.add_argument("--readings", type=int, default=LIVE_READINGS, help=f"readings per fused turn (default {LIVE_READINGS})")
+    parser.add_argument("--readings", type=int, default=LIVE_READINGS,
+                        help=f"readings per fused turn (default {LIVE_READINGS}, as the runner reads)")
     args = parser.parse_args()
     reuse_freed_memory()
     torch.set_num_threads(args.threads)

@@ -47,8 +47,8 @@ def main() -> None:
     parser.add_argument("--diameters", type=int, nargs="+", help="only the bins starting at these diameters (mm)")
     parser.add_argument("--model", type=Path, default=DEFAULT_WEIGHTS)
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--readings", type=int, default=FILE_READINGS, help=f"turned readings averaged (default {FILE_READINGS}, "
-                        "as detect reads)")
+    parser.add_argument("--readings", type=int, default=FILE_READINGS,
+                        help=f"turned readings averaged (default {FILE_READINGS}, as detect reads)")
     args = parser.parse_args()
     reuse_freed_memory()
     torch.set_num_threads(args.threads)

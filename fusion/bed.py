@@ -80,10 +80,12 @@ def _robust_plane(points: np.ndarray, normal: np.ndarray, offset: float, scale: 
     relief) tilted the plane by 1.8-3.1 degrees on tilted virtual beds; with a scale of about 5 cm
     the weighted fit came within 1 degree of the soil's least-squares plane, caps and all.
 
-    The refinement runs until the plane settles (moves less than ``settled``) and is rounded to a
-    nanometre, so that where it ends does not depend on where it started: Open3D's RANSAC searches in parallel threads and gives a
-    plane a few hundredths off from one run to the next on the same points, and a replay must fuse
-    the session's clouds as the run did.
+    The refinement runs until the plane settles (moves less than ``settled``), and the plane is
+    rounded to 1e-9 (a nanometre in the offset): from starts a few hundredths apart it then ends
+    bit-identical unless a rounding step falls within the last 1e-13 of spread (about one run in a
+    thousand). This matters because Open3D's RANSAC searches in parallel threads and starts it up to
+    0.04 off from one run to the next on the same points, and a replay must fuse a session's clouds as
+    the run did.
     """
     for _ in range(max_iterations):
         residual = points @ normal + offset

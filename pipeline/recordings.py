@@ -139,15 +139,16 @@ def main(argv: list[str] | None = None) -> int:
     for recording in RECORDINGS:
         if args.names and recording.name not in args.names:
             continue
-        sidecar = expected_path(args.out / recording.file)
-        previous = json.loads(sidecar.read_text()) if sidecar.is_file() else None
+        session = args.out / recording.file
+        sidecar = expected_path(session)
+        previous = json.loads(sidecar.read_text()) if sidecar.is_file() and session.is_file() else None
         with tempfile.TemporaryDirectory(dir=args.out) as scratch:
             made, documents = make_recording(recording, Path(scratch), model)
-            size = made.stat().st_size / 1e6
             report = compare(previous, documents) if previous is not None else None
             if report is None or not report.passed:  # within the check's tolerances: keep the session as it was
-                os.replace(made, args.out / recording.file)
+                os.replace(made, session)
                 os.replace(expected_path(made), sidecar)
+        size = session.stat().st_size / 1e6
         if report is None:
             verdict = "new expected detections"
         else:

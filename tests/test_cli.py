@@ -311,3 +311,16 @@ def test_synth_says_when_a_bed_is_full(tmp_path, capsys):
     placed = len(SyntheticScene.load(next(tmp_path.glob("*.npz"))).centers)
     assert placed < 290
     assert "1 of 1 scenes hold fewer than 290 mushrooms" in capsys.readouterr().err
+
+
+def test_files_are_read_four_times_and_the_live_runner_reads_once():
+    """detect's and eval's default is FILE_READINGS (eval's None stands for it, so that --table can refuse
+    an explicit count); live reads each unit LIVE_READINGS times; replay reads as the session says."""
+    from perception.detect import FILE_READINGS, LIVE_READINGS
+    from pipeline.cli import build_parser
+
+    parser = build_parser()
+    assert parser.parse_args(["detect", "bed.ply"]).readings == FILE_READINGS > LIVE_READINGS
+    assert parser.parse_args(["eval"]).readings is None
+    assert parser.parse_args(["live", "--camera", "virtual"]).readings == LIVE_READINGS
+    assert parser.parse_args(["replay", "session.mcap"]).readings is None

@@ -136,4 +136,9 @@ def test_recordings_are_remade_identically(tmp_path, capsys):
     assert "expected detections unchanged" in capsys.readouterr().out
     assert expected_path(tmp_path / session.name).read_bytes() == expected_path(session).read_bytes()
     assert (tmp_path / session.name).read_bytes() == kept
+    (tmp_path / session.name).unlink()  # expectations without their session: the session is made again
+    assert main(["single-view", "--out", str(tmp_path)]) == 0
+    assert "new expected detections" in capsys.readouterr().out
+    remade = json.loads(expected_path(tmp_path / session.name).read_text())
+    assert [d["mushrooms"] for _, d in read_documents(tmp_path / session.name)] == [d["mushrooms"] for d in remade]
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([session.name, expected_path(session).name])

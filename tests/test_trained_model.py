@@ -6,7 +6,7 @@ from perception.synthetic.dataset import load_preset
 from perception.train import load_weights
 
 FLOORS = {
-    # Measured, pooled over val50 beds 0-4 (these) and, for the spread, over beds 5-9:
+    # Measured, read once (the library's default), over val50 beds 0-4 (these) and, for the spread, 5-9:
     #   meanshift  AP@25 100.00 / 99.99 %   AP@50 100.00 / 99.99 %  angle 3.80 / 2.55 deg  scale 3.48 / 4.14 %
     #   dbscan     AP@25 97.28 / 98.85 %    AP@50 97.28 / 97.54 %   angle 3.90 / 2.48 deg  scale 2.88 / 3.85 %
     # Bounds: the worst AP less about two caps of the 75 (2.7 points), rounded down; the worst angle and

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import argparse
 
-from pipeline.commands.common import (FILE_READINGS, SHIPPED_ZOOM, SPACING_HELP, VISIBILITY, CliError, add_overwrite_flag,
-                                      add_ray_flag, json_text, load_model, model_path, parse_readings, parse_spacing,
-                                      parse_zoom, positive, ray_options, refuse_to_replace, replace_file, writable_file)
+from pipeline.commands.common import (FILE_READINGS, SHIPPED_ZOOM, SPACING_HELP, VISIBILITY, CliError,
+                                      add_overwrite_flag, add_ray_flag, json_text, load_model, model_path,
+                                      parse_readings, parse_spacing, parse_zoom, positive, ray_options,
+                                      refuse_to_replace, replace_file, writable_file)
 
 PAPER = {"ap25": {"meanshift": 0.9957, "dbscan": 0.9920}, "ap50": {"meanshift": 0.8195, "dbscan": 0.8148},
          "scale_err": 0.048, "cosine": 0.9973, "angle_deg": 4.22}
