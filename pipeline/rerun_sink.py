@@ -83,7 +83,9 @@ def default_blueprint(camera_ids: list[str] = (), T_world_bed: np.ndarray | None
     plots = [rrb.TimeSeriesView(origin="stats/latency", name="latency per stage (ms)"),
              rrb.TimeSeriesView(origin="stats/counts", name="caps and dropped work")]
     side = rrb.Vertical(*cameras[:2], *plots) if cameras else rrb.Vertical(*plots)
-    return rrb.Blueprint(rrb.Horizontal(bed, side, column_shares=[3, 2]), collapse_panels=True)
+    # following: a recording opens on its newest unit and caps, and a live run's view keeps up with it
+    time = rrb.TimePanel(state="collapsed", timeline="frame", play_state="following")
+    return rrb.Blueprint(rrb.Horizontal(bed, side, column_shares=[3, 2]), time, collapse_panels=True)
 
 
 def set_frame(rec: rr.RecordingStream, frame: int, capture_ns: int | None = None) -> None:

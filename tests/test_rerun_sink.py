@@ -56,3 +56,10 @@ def test_camera_frames_land_under_world_camera(tmp_path):
 def test_no_stream_when_nothing_asked_for():
     with rerun_stream(None) as rec:
         assert rec is None
+
+
+def test_the_run_opens_on_its_newest_frame():
+    """A saved run opens where it ended (the last unit's cloud and caps), not on frame 0 playing through
+    frames that hold no cloud yet; a live viewer keeps up with the run."""
+    time_panel = default_blueprint(["a"]).time_panel
+    assert (str(time_panel.timeline), str(time_panel.play_state)) == ("frame", "following")
