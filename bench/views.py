@@ -24,7 +24,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from capture.source import Source  # noqa: E402
-from common.geometry import transform_points, turn_about_z  # noqa: E402
+from common.geometry import transform_points, turning_about_z  # noqa: E402
 from perception.detect import DEFAULT_WEIGHTS, LIVE_READINGS, detect_points  # noqa: E402
 from perception.cap import Caps  # noqa: E402
 from perception.evaluate import evaluate  # noqa: E402
@@ -59,9 +59,7 @@ class Frames(Source):
 def turned_caps(model, fused, degrees: float, readings: int) -> Caps:
     """The caps ``detect_points`` finds in a fused cloud turned by ``degrees`` about the vertical through
     its centroid (bed frame), turned back and given in the world frame, as the runner gives them."""
-    T_turned_bed = np.eye(4)
-    T_turned_bed[:3, :3] = turn_about_z(np.radians(degrees))
-    T_turned_bed[:3, 3] = fused.points.mean(0) - T_turned_bed[:3, :3] @ fused.points.mean(0)
+    T_turned_bed = turning_about_z(np.radians(degrees), fused.points.mean(0))
     caps = detect_points(model, transform_points(T_turned_bed, fused.points), readings=readings).caps
     return caps.moved(fused.T_world_bed @ np.linalg.inv(T_turned_bed))
 

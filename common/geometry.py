@@ -21,6 +21,14 @@ def turn_about_z(angle: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def turning_about_z(angle: float, pivot: np.ndarray) -> np.ndarray:
+    """T_turned_original: the rigid turn by ``angle`` radians about the vertical through ``pivot``."""
+    T = np.eye(4)
+    T[:3, :3] = turn_about_z(angle)
+    T[:3, 3] = pivot - T[:3, :3] @ pivot
+    return T
+
+
 def look_at(eye: np.ndarray, target: np.ndarray, up_hint: np.ndarray = np.array([0.0, 1.0, 0.0])) -> np.ndarray:
     """T_world_camera of an OpenCV camera at ``eye`` looking at ``target``."""
     eye, target = np.asarray(eye, np.float64), np.asarray(target, np.float64)

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from common.geometry import cell_lookup, transform_points, turn_about_z, voxel_representatives
+from common.geometry import cell_lookup, transform_points, turning_about_z, voxel_representatives
 from perception.cap import Caps
 from perception.instances import ClusterConfig, cluster
 from perception.model import LENGTH_UNIT, MushroomNet, inference_model, voxel_features
@@ -191,13 +191,14 @@ def _averaged_readings(model: MushroomNet, points: np.ndarray, zoom: float, read
     pivot = points.mean(0)
     total = np.column_stack(first)
     for k in range(1, readings):
-        rotation = turn_about_z(2 * np.pi * k / readings)
-        coords, turned_to_voxel, zoomed = network_input(zoom * ((points - pivot) @ rotation.T + pivot),
+        T_turned = turning_about_z(2 * np.pi * k / readings, pivot)
+        coords, turned_to_voxel, zoomed = network_input(zoom * transform_points(T_turned, points),
                                                         model.config.voxel, next(model.parameters()).device)
         _, existence, centers, orientation = network_output(model, coords, zoomed, zoom)
         if orientation.ndim == 2:  # explicit axis vectors turn back with the centres
-            orientation = orientation @ rotation
-        values = np.column_stack([existence, (centers - pivot) @ rotation + pivot, orientation])
+            orientation = orientation @ T_turned[:3, :3]
+        turned_back = transform_points(np.linalg.inv(T_turned), centers.astype(np.float64))
+        values = np.column_stack([existence, turned_back, orientation])
         total += voxel_average(torch.from_numpy(values[turned_to_voxel.numpy()]), point_to_voxel, count).numpy()
     mean = total / readings
     return mean[:, 0], mean[:, 1:4], mean[:, 4] if first[2].ndim == 1 else mean[:, 4:]

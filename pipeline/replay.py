@@ -72,19 +72,17 @@ def read_expected(path: Path) -> list[dict]:
 
 
 def recorded_readings(session: Path, expected: list[dict] | None) -> int:
-    """How many turned readings the session's detections (``expected``, else those it records) were made
-    with: their documents' ``readings``, 1 when they do not say; so that a replay reads as the run did."""
-    from capture.mcap_io import read_documents
-    from capture.source import SourceError
+    """How many turned readings the session's detections (``expected``, else ``expected_documents``) were
+    made with: their documents' ``readings``, 1 when they do not say; so that a replay reads as the run did."""
     from perception.detect import MAX_READINGS
 
     documents = expected
-    if documents is None and session.suffix == ".mcap":
+    if documents is None:
         try:
-            documents = [document for _, document in read_documents(session)]
-        except SourceError:
+            documents = expected_documents(session)
+        except ReplayError:  # none recorded (or none readable): a replay that checks nothing reads once
             documents = []
-    said = [document.get("readings", 1) if isinstance(document, dict) else None for document in documents or []]
+    said = [document.get("readings", 1) if isinstance(document, dict) else None for document in documents]
     if not all(type(n) is int and 1 <= n <= MAX_READINGS for n in said) or len({*said}) > 1:
         counts = ", ".join(sorted({repr(n) for n in said}))
         raise ReplayError(f"{session}: its detections do not say one number of readings ({counts}); give --readings")

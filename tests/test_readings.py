@@ -103,7 +103,7 @@ def test_replay_reads_as_often_as_the_session_was_read_unless_told(tmp_path, cha
     asked, reached = chain_readings
     model = load_weights(DEFAULT_WEIGHTS)[0]
     three = _frames_and_documents(tmp_path / "three.mcap", [{"readings": 3, "frame": "world", "mushrooms": []}])
-    unsaid = RECORDINGS_DIR / "single-view.mcap"  # its detections do not say: read once
+    unsaid = RECORDINGS_DIR / "turntable-12.mcap"  # its detections do not say: read once
     for session, options in ((three, ReplayOptions()), (three, ReplayOptions(readings=2)), (unsaid, ReplayOptions())):
         with pytest.raises(reached):
             run_replay(session, model, tmp_path / "out", None, options, quiet=True)
