@@ -101,11 +101,11 @@ def test_an_error_in_the_predicted_centre_leaves_the_axis_and_is_removed_along_i
         assert bias > 1.0
 
 
-def oval_caps(count=6, encoding_tilt_deg=10.0, seed=0):
+def oval_caps(count=6, encoding_tilt_deg=10.0, seed=0, position_noise=3e-4):
     """Tilted caps with unequal base semi-axes (as on the synthetic beds), their upward-facing side only,
-    position noise 0.3 mm. The orientation values are those of an axis ``encoding_tilt_deg`` off the
-    true one, plus noise: the network's errors are of that kind, smooth over a cap, so that a least
-    squares over its points does not average them away."""
+    ``position_noise`` metres of noise. The orientation values are those of an axis ``encoding_tilt_deg``
+    off the true one, plus noise: the network's errors are of that kind, smooth over a cap, so that a
+    least squares over its points does not average them away."""
     rng = np.random.default_rng(seed)
     parts, truth = [], []
     for label in range(count):
@@ -117,7 +117,7 @@ def oval_caps(count=6, encoding_tilt_deg=10.0, seed=0):
         local = semi * direction / np.linalg.norm(direction, axis=1, keepdims=True)
         facing_up = (rotation @ (local / semi**2).T)[2] > 0
         local = local[(local[:, 2] > 0) & facing_up][:150]
-        points = local @ rotation.T + center + rng.normal(0, 3e-4, local.shape)
+        points = local @ rotation.T + center + rng.normal(0, position_noise, local.shape)
         wrong_axis = rotation @ cap_rotation(np.radians(encoding_tilt_deg), 0.0)[:, 2]
         orientation = (points - center) @ wrong_axis / semi[2] + rng.normal(0, 0.05, len(local))
         parts.append((points, orientation, np.full(len(points), label)))
@@ -139,6 +139,30 @@ def test_the_surface_fit_brings_back_most_of_the_axis_the_encoding_has_wrong():
     assert np.all(encoding > 7.0)
     assert np.median(surface) < 0.5 * np.median(encoding)
     assert np.mean(surface) < 0.7 * np.mean(encoding)
+
+
+def test_a_noisy_surface_yields_the_axis_to_the_encoding(monkeypatch):
+    """1 mm of noise on the caps' points, an encoding 3 degrees off: the surface would pull the axes
+    further off than the encoding has them, and the noise-raised encoding weight holds them back."""
+    points, centers, orientation, labels, truth = oval_caps(count=24, encoding_tilt_deg=3.0, position_noise=1e-3)
+    args = (points, centers + 0.001, orientation, np.ones(len(points)), labels)
+    raised = axis_errors_deg(fit_caps(*args), truth)
+    monkeypatch.setattr(pose, "SURFACE_NOISE_REFERENCE", np.inf)
+    fixed = axis_errors_deg(fit_caps(*args), truth)
+    encoding = axis_errors_deg(fit_caps(*args, axis="encoding"), truth)
+    assert np.mean(fixed) > 1.5 * np.mean(encoding)
+    assert np.mean(raised) < 0.75 * np.mean(fixed)
+
+
+def test_a_clean_surface_keeps_the_fixed_encoding_weight(monkeypatch):
+    """Below ``SURFACE_NOISE_REFERENCE`` the weight is the fixed one: the same axes to the last bit."""
+    points, centers, orientation, labels, _ = oval_caps(count=12, encoding_tilt_deg=1.0, position_noise=1e-4)
+    args = (points, centers, orientation, np.ones(len(points)), labels)
+    default = fit_caps(*args).rotations
+    monkeypatch.setattr(pose, "SURFACE_NOISE_REFERENCE", np.inf)
+    np.testing.assert_array_equal(fit_caps(*args).rotations, default)
+    monkeypatch.setattr(pose, "SURFACE_NOISE_REFERENCE", 1e-5)
+    assert not np.array_equal(fit_caps(*args).rotations, default)
 
 
 def test_a_cluster_too_small_for_the_surface_fit_keeps_the_encoding_axis():
