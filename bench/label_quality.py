@@ -12,7 +12,8 @@ bench would score: the detector against the PCA axis, and PCA against the sphere
 relative error of the footprint radius (the radius of a circle with the area of the convex hull of the
 cap's points seen from above the bed) and of the detector's radius against the true radius, and of
 the detector's radius against the footprint radius, as the real-cloud bench scores it, each with the
-median of its signed errors (above 0: the first radius is the larger).
+median of its signed errors (above 0: the first radius is the larger); and those of the footprint
+radius by the cap's true tilt.
 Usage: python bench/label_quality.py [--beds 10]
 """
 
@@ -35,6 +36,8 @@ from pipeline.runner import RunConfig, Runner  # noqa: E402
 from pipeline.sources import VirtualBed, virtual_bed_source  # noqa: E402
 
 ON_SURFACE, LABELLED_POINTS = 0.002, 250
+TILT_BINS_DEG = (20.0, 35.0)
+"""True tilt bin edges of the radius table by tilt: a footprint seen from above shrinks as a cap leans."""
 
 
 def least_variance_axis(points: np.ndarray, up: np.ndarray) -> np.ndarray:
@@ -77,6 +80,7 @@ def main() -> None:
     model, _ = load_weights(args.model)
     angles: dict[str, list[float]] = {key: [] for key in ("pca", "sphere", "detector", "detector_pca", "pca_sphere")}
     radius_errors: dict[str, list[float]] = {key: [] for key in ("footprint", "detector", "detector_footprint")}
+    tilts: dict[str, list[float]] = {"footprint": [], "detector_footprint": []}
     for seed in range(args.beds):
         source, bed = virtual_bed_source(VirtualBed(seed=100 + seed, views=18))
         summary = Runner(source, model, RunConfig(), []).run()
@@ -95,6 +99,7 @@ def main() -> None:
             angles["pca_sphere"].append(float(tilt_deg(pca, sphere)))
             true_radius, footprint = bed.scales[k, :2].mean(), footprint_radius(fused.points[mine])
             radius_errors["footprint"].append((footprint - true_radius) / true_radius)
+            tilts["footprint"].append(float(tilt_deg(truth, up)))
             distance = np.linalg.norm(caps.centers - bed.centers[k], axis=1) if len(caps) else np.array([np.inf])
             if distance.min() < 0.5 * bed.scales[k, 0]:
                 nearest = int(distance.argmin())
@@ -104,6 +109,7 @@ def main() -> None:
                 radius = caps.radii[nearest]
                 radius_errors["detector"].append((radius - true_radius) / true_radius)
                 radius_errors["detector_footprint"].append((radius - footprint) / footprint)
+                tilts["detector_footprint"].append(tilts["footprint"][-1])
         print(f"bed {seed}: {len(angles['pca'])} caps with {LABELLED_POINTS}+ visible points so far", flush=True)
     print(f"\n{args.beds} beds (seeds 100-{99 + args.beds}), 18 views; {len(angles['pca'])} caps labelled, "
           f"{len(angles['detector'])} of them detected\n")
@@ -120,6 +126,18 @@ def main() -> None:
     print(describe_signed("detector against the truth", radius_errors["detector"]))
     print(describe_signed("detector against the footprint radius (what bench/real.py scores)",
                           radius_errors["detector_footprint"]))
+    print("\n| true tilt | caps | footprint against the truth, median signed (%) | "
+          "detector against the footprint, mean (%) |")
+    print("|---|---|---|---|")
+    edges = (0.0, *TILT_BINS_DEG, 90.0)
+    for low, high in zip(edges[:-1], edges[1:]):
+        footprint = np.array(radius_errors["footprint"])[(np.array(tilts["footprint"]) >= low) &
+                                                        (np.array(tilts["footprint"]) < high)]
+        scored = np.array(radius_errors["detector_footprint"])[(np.array(tilts["detector_footprint"]) >= low) &
+                                                               (np.array(tilts["detector_footprint"]) < high)]
+        if len(footprint):
+            print(f"| {low:.0f}-{high:.0f} deg | {len(footprint)} | {100 * np.median(footprint):+.1f} | "
+                  + (f"{100 * np.mean(np.abs(scored)):.1f} |" if len(scored) else "- |"))
 
 
 if __name__ == "__main__":

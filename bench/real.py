@@ -14,6 +14,9 @@ printed beside it), axis error the angle between signed up-vectors, radius error
 score.py itself is run on the same detections and its precision, recall and F1 compared with ours.
 Beside them: where the false positives and misses sit, and (--by-size) recall by label radius.
 
+--caps lists every non-partial label with its matched detection: radii, signed radius error, axis
+error, and both tilts from the bed's normal.
+
 --png draws a top view (x right, y up, input frame): points coloured by height above the bed plane,
 labels as circles (green: full and found, grey: partial, thick yellow: full and missed), detections as
 circles with a line along the projected cap axis (red: matched a full label, orange: matched a partial
@@ -21,7 +24,7 @@ one, thick magenta: false positive); white lines from each matched detection to 
 the bottom left is 10 cm long.
 
 Usage: python bench/real.py --cloud example_0.pcd --labels ../shared/real/labels_example_0.json
-       [--thin MM] [--png OUT.png] [--json OUT.json] [--model PATH] [--by-size]
+       [--thin MM] [--png OUT.png] [--json OUT.json] [--model PATH] [--by-size] [--caps]
        [--detect-arg=--clustering --detect-arg=dbscan] [--scorer PATH]
 """
 
@@ -202,6 +205,46 @@ def recall_by_size(labels: Caps, pairs: np.ndarray) -> list[dict]:
                      "full": int(full.sum()), "full_found": int((full & found).sum()),
                      "all": int(in_bin.sum()), "all_found": int((in_bin & found).sum())})
     return rows
+
+
+def per_cap(preds: Caps, labels: Caps, pairs: np.ndarray, up: np.ndarray) -> list[dict]:
+    """One row per non-partial label: its radius and tilt from ``up`` (the bed's normal), and for the
+    detection matched to it the radius, signed relative radius error, axis error and tilt (None when
+    missed). Where the mean errors come from, cap by cap."""
+    pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+    match = dict(zip(pairs[:, 1].tolist(), pairs[:, 0].tolist()))
+    up = up / np.linalg.norm(up)
+
+    def tilt(axis: np.ndarray) -> float:
+        return float(np.degrees(np.arccos(np.clip(abs(axis @ up), 0.0, 1.0))))
+
+    rows = []
+    for j in np.flatnonzero(~labels.partial):
+        row = {"label": labels.ids[j], "radius_mm": 1000 * float(labels.radii[j]), "tilt_deg": tilt(labels.axes[j]),
+               "found": j in match}
+        if j in match:
+            i = match[j]
+            cosine = float(np.clip(preds.axes[i] @ labels.axes[j], -1.0, 1.0))
+            row.update(detected_radius_mm=1000 * float(preds.radii[i]),
+                       radius_rel_signed=float((preds.radii[i] - labels.radii[j]) / labels.radii[j]),
+                       axis_deg=float(np.degrees(np.arccos(cosine))), detected_tilt_deg=tilt(preds.axes[i]))
+        rows.append(row)
+    return rows
+
+
+def cap_report(rows: list[dict]) -> list[str]:
+    """per_cap's rows as a table, the largest radius errors first, missed labels last."""
+    lines = ["non-partial labels, largest radius error first: label | radius mm label / detected (error) | "
+             "axis error deg | tilt deg label / detected"]
+    found = sorted((r for r in rows if r["found"]), key=lambda r: -abs(r["radius_rel_signed"]))
+    for r in found:
+        lines.append(f"  {r['label']!s:>5} | {r['radius_mm']:5.1f} / {r['detected_radius_mm']:5.1f} "
+                     f"({100 * r['radius_rel_signed']:+5.1f} %) | {r['axis_deg']:5.1f} | "
+                     f"{r['tilt_deg']:4.1f} / {r['detected_tilt_deg']:4.1f}")
+    for r in rows:
+        if not r["found"]:
+            lines.append(f"  {r['label']!s:>5} | {r['radius_mm']:5.1f} / missed | - | {r['tilt_deg']:4.1f} / -")
+    return lines
 
 
 _SCORER_LINE = re.compile(r"^(all caps|non-partial)\s*: TP=(\d+) FP=(\d+) FN=(\d+).*"
@@ -532,6 +575,8 @@ def main() -> None:
     parser.add_argument("--json", type=Path, help="write every figure here")
     parser.add_argument("--model", help="weights file (default: the shipped model)")
     parser.add_argument("--by-size", action="store_true", help="also print recall by label radius")
+    parser.add_argument("--caps", action="store_true",
+                        help="also print every non-partial label with its matched detection's radius and axis errors")
     parser.add_argument("--detect-arg", action="append", default=[], metavar="ARG",
                         help="pass ARG on to detect (split like a shell word list), e.g. "
                              "--detect-arg=--clustering --detect-arg=dbscan")
@@ -570,9 +615,12 @@ def main() -> None:
         figures.update(cloud=str(args.cloud), labels=str(args.labels), thin_mm=args.thin, points=len(points),
                        detect_args=detect_args, detect_wall_s=wall, stage_s=seconds,
                        detections_in_process=n_inprocess)
+        figures["caps"] = per_cap(preds, labels, np.array(figures["pairs"]), T_input_bed[:3, 2])
         print("\n".join(report(figures)))
         if args.by_size:
             print("\n".join(size_report(figures["by_size"])))
+        if args.caps:
+            print("\n".join(cap_report(figures["caps"])))
         if args.scorer.exists():
             theirs, lines = run_scorer(args.scorer, args.labels, out)
             problems = compare_with_scorer(figures, theirs)
