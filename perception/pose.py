@@ -95,8 +95,8 @@ SURFACE_NOISE_REFERENCE = 3e-4
 """Metres. Up to this median distance of the clusters' points from their fitted surfaces the encoding
 keeps ``SURFACE_ENCODING_WEIGHT`` (``encoding_weight``). It lies above the noisiest camera input the
 synthetic benches model, so that val50, test50 and every view set of bench/views.py get the same axes
-as with the fixed weight: the virtual D405's single view ends 0.21-0.24 mm off, fused views 0.15-0.18
-mm, val50 0.063 mm."""
+as with the fixed weight: the virtual D405's single view (3 beds) ends 0.18-0.20 mm off, fused views
+0.13-0.17 mm, val50 and test50 0.04-0.07 mm (their first 5 beds); the real cloud of ../shared/real/ 0.40-0.42 mm."""
 HEIGHT_RATIO_RANGE = (CAP_HEIGHT_RATIO * 0.8 / 1.2, CAP_HEIGHT_RATIO * 1.2 / 0.8)
 """s_z / s of the template under per-axis factors in [0.8, 1.2]."""
 
@@ -249,7 +249,7 @@ def encoding_weight(noise: float) -> float:
     a noisy cloud through its voxels and its encoding degrades far less. Val50 beds (the first 10, read
     four times) with Gaussian noise of 0.6 mm added: angle from the truth 6.62 degrees with the fixed
     weight, 4.73 with the encoding alone, 6.04 with this weight. The real cloud of ../shared/real/
-    (0.42 mm off the fitted surfaces): its caps' axes 17.1 degrees from its labels' on average with the
+    (0.40-0.42 mm off the fitted surfaces): its caps' axes 17.1 degrees from its labels' on average with the
     fixed weight, 12.5 with the encoding alone, 14.8 with this weight (median 12.3, 8.0, 10.9)."""
     return SURFACE_ENCODING_WEIGHT * max(1.0, noise / SURFACE_NOISE_REFERENCE)
 
