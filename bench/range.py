@@ -2,8 +2,10 @@
 spacing and by cap diameter, each bin its own beds (caps of that size only), so a bin is scored on the
 caps it holds. The model is trained on caps 16-72 mm across (scale 0.5-1.5 of a 40 mm cap, per axis
 0.8-1.2, beds scaled 1.05-1.35) at 3 mm spacing; the table says how far beyond that it holds.
+``--cap-height LOW HIGH`` draws every cap's height as that factor of the template's (2/3 of its
+radius): opened, flatter caps than the model was trained on.
 
-Usage: python bench/range.py [--beds 6] [--spacings 1 3 4 5] [--model PATH]
+Usage: python bench/range.py [--beds 6] [--spacings 1 3 4 5] [--cap-height LOW HIGH] [--model PATH]
 """
 
 import sys
@@ -45,17 +47,22 @@ def main() -> None:
     parser.add_argument("--beds", type=int, default=6, help="beds per cell of the table")
     parser.add_argument("--spacings", type=float, nargs="+", default=[1, 3, 4, 5], help="millimetres")
     parser.add_argument("--diameters", type=int, nargs="+", help="only the bins starting at these diameters (mm)")
+    parser.add_argument("--cap-height", type=float, nargs=2, default=(1.0, 1.0), metavar=("LOW", "HIGH"),
+                        help="cap heights drawn as this factor of the template's (default 1 1: the template)")
     parser.add_argument("--model", type=Path, default=DEFAULT_WEIGHTS)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--readings", type=int, default=FILE_READINGS,
                         help=f"turned readings averaged (default {FILE_READINGS}, as detect reads)")
     args = parser.parse_args()
+    if not 0 < args.cap_height[0] <= args.cap_height[1]:
+        parser.error(f"--cap-height needs 0 < LOW <= HIGH, got {args.cap_height[0]:g} {args.cap_height[1]:g}")
     reuse_freed_memory()
     torch.set_num_threads(args.threads)
     model, _ = load_weights(args.model)
     print(f"model: {args.model}, {args.readings} readings; {args.beds} beds per cell, 5-25 round caps each, "
-          "MeanShift; AP@25 / AP@50 "
-          "(caps)\n")
+          "MeanShift; AP@25 / AP@50 (caps)"
+          + (f"; cap heights x {args.cap_height[0]:g}-{args.cap_height[1]:g}" if tuple(args.cap_height) != (1, 1) else "")
+          + "\n")
     print("| cap diameter | " + " | ".join(f"{s:g} mm spacing" for s in args.spacings) + " |")
     print("|---|" + "---|" * len(args.spacings))
     started = time.perf_counter()
@@ -66,7 +73,8 @@ def main() -> None:
         scale = (low / 2000 / CAP_RADIUS_AT_UNIT_SCALE, high / 2000 / CAP_RADIUS_AT_UNIT_SCALE)
         cells = []
         for spacing in args.spacings:
-            config = SceneConfig(mushrooms=(5, 25), scale=scale, axis_factor=(1.0, 1.0), spacing=spacing / 1000)
+            config = SceneConfig(mushrooms=(5, 25), scale=scale, axis_factor=(1.0, 1.0), spacing=spacing / 1000,
+                                 cap_height=tuple(args.cap_height))
             scenes = [generate_scene(int(1000 * high + seed), config) for seed in range(args.beds)]
             ap25, ap50, caps = score(model, scenes, args.readings)
             cells.append(f"{100 * ap25:.1f} / {100 * ap50:.1f} % ({caps})")
