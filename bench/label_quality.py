@@ -129,15 +129,17 @@ def main() -> None:
     print("\n| true tilt | caps | footprint against the truth, median signed (%) | "
           "detector against the footprint, mean (%) |")
     print("|---|---|---|---|")
-    edges = (0.0, *TILT_BINS_DEG, 90.0)
-    for low, high in zip(edges[:-1], edges[1:]):
-        footprint = np.array(radius_errors["footprint"])[(np.array(tilts["footprint"]) >= low) &
-                                                        (np.array(tilts["footprint"]) < high)]
-        scored = np.array(radius_errors["detector_footprint"])[(np.array(tilts["detector_footprint"]) >= low) &
-                                                               (np.array(tilts["detector_footprint"]) < high)]
-        if len(footprint):
-            print(f"| {low:.0f}-{high:.0f} deg | {len(footprint)} | {100 * np.median(footprint):+.1f} | "
-                  + (f"{100 * np.mean(np.abs(scored)):.1f} |" if len(scored) else "- |"))
+    footprint_bin = np.digitize(tilts["footprint"], TILT_BINS_DEG)
+    scored_bin = np.digitize(tilts["detector_footprint"], TILT_BINS_DEG)
+    footprint, scored = np.array(radius_errors["footprint"]), np.array(radius_errors["detector_footprint"])
+    edges = (0, *TILT_BINS_DEG, 90)
+    for b in range(len(edges) - 1):
+        if not np.any(footprint_bin == b):
+            continue
+        mine = scored[scored_bin == b]
+        print(f"| {edges[b]:g}-{edges[b + 1]:g} deg | {np.sum(footprint_bin == b)} | "
+              f"{100 * np.median(footprint[footprint_bin == b]):+.1f} | "
+              + (f"{100 * np.mean(np.abs(mine)):.1f} |" if len(mine) else "- |"))
 
 
 if __name__ == "__main__":

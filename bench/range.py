@@ -15,6 +15,7 @@ from pathlib import Path
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 
 import argparse  # noqa: E402
+import math  # noqa: E402
 import time  # noqa: E402
 
 import torch  # noqa: E402
@@ -54,8 +55,9 @@ def main() -> None:
     parser.add_argument("--readings", type=int, default=FILE_READINGS,
                         help=f"turned readings averaged (default {FILE_READINGS}, as detect reads)")
     args = parser.parse_args()
-    if not 0 < args.cap_height[0] <= args.cap_height[1]:
-        parser.error(f"--cap-height needs 0 < LOW <= HIGH, got {args.cap_height[0]:g} {args.cap_height[1]:g}")
+    low, high = args.cap_height
+    if not (math.isfinite(high) and 0 < low <= high):
+        parser.error(f"--cap-height needs finite 0 < LOW <= HIGH, got {low:g} {high:g}")
     reuse_freed_memory()
     torch.set_num_threads(args.threads)
     model, _ = load_weights(args.model)

@@ -95,8 +95,9 @@ SURFACE_NOISE_REFERENCE = 3e-4
 """Metres. Up to this median distance of the clusters' points from their fitted surfaces the encoding
 keeps ``SURFACE_ENCODING_WEIGHT`` (``encoding_weight``). It lies above the noisiest camera input the
 synthetic benches model, so that val50, test50 and every view set of bench/views.py get the same axes
-as with the fixed weight: the virtual D405's single view (3 beds) ends 0.18-0.20 mm off, fused views
-0.13-0.17 mm, val50 and test50 0.04-0.07 mm (their first 5 beds); the real cloud of ../shared/real/ 0.40-0.42 mm."""
+as with the fixed weight: the virtual D405's single view (3 beds) ends 0.15-0.19 mm off, fused views
+0.13-0.17 mm, val50 and test50 0.04-0.07 mm (their first 5 beds); the real cloud of ../shared/real/
+0.39-0.41 mm."""
 HEIGHT_RATIO_RANGE = (CAP_HEIGHT_RATIO * 0.8 / 1.2, CAP_HEIGHT_RATIO * 1.2 / 0.8)
 """s_z / s of the template under per-axis factors in [0.8, 1.2]."""
 
@@ -248,9 +249,9 @@ def encoding_weight(noise: float) -> float:
     The surface pins a cap's axis down only as well as the surface is measured, while the network reads
     a noisy cloud through its voxels and its encoding degrades far less. Val50 beds (the first 10, read
     four times) with Gaussian noise of 0.6 mm added: angle from the truth 6.62 degrees with the fixed
-    weight, 4.73 with the encoding alone, 6.04 with this weight. The real cloud of ../shared/real/
-    (0.40-0.42 mm off the fitted surfaces): its caps' axes 17.1 degrees from its labels' on average with the
-    fixed weight, 12.5 with the encoding alone, 14.8 with this weight (median 12.3, 8.0, 10.9)."""
+    weight, 4.73 with the encoding alone, 6.09 with this weight. The real cloud of ../shared/real/
+    (0.39-0.41 mm off the fitted surfaces): its caps' axes 17.1 degrees from its labels' on average with the
+    fixed weight, 12.5 with the encoding alone, 15.0 with this weight (median 12.3, 8.0, 11.1)."""
     return SURFACE_ENCODING_WEIGHT * max(1.0, noise / SURFACE_NOISE_REFERENCE)
 
 
@@ -265,45 +266,71 @@ def refine_axes(points: np.ndarray, orientation: np.ndarray, lab: np.ndarray, ce
     to the surface, (rho - 1) times the mean base semi-axis, rho^2 = sum_i (q_i / a_i)^2 in the cap
     frame q, reweighted towards L1 and zero for a point ``SURFACE_OUTLIER_FACTOR`` median distances off;
     beside it, ``SURFACE_ENCODING_WEIGHT`` times the encoding's miss along the axis, q_z - y a_z. Where
-    the points then lie further off their fitted surfaces than ``SURFACE_NOISE_REFERENCE`` (a noisy
-    cloud), the fit runs again from the encoding's pose with the weight ``encoding_weight`` gives. Steps
+    the points of the fits that stand then lie a median distance off their surfaces above
+    ``SURFACE_NOISE_REFERENCE`` (a noisy cloud), the fit runs again from the encoding's pose with the
+    weight ``encoding_weight`` gives. Steps
     are bounded (0.45 rad, 6 mm, 20 % in size), and a fit that has turned a flat, half-seen dome over
     fails the height-ratio gate. Only the axis is kept: the fitted centre and semi-axes are worse than
     the encoding's on small caps.
     """
     counts = np.bincount(lab, minlength=len(centers))
-    clusters = _padded_clusters(points, orientation, lab, counts)
-    refined, semi, noise = _fit_surfaces(clusters, centers, rotations, scales, iterations, SURFACE_ENCODING_WEIGHT)
-    if encoding_weight(noise) > SURFACE_ENCODING_WEIGHT:
-        refined, semi, _ = _fit_surfaces(clusters, centers, rotations, scales, iterations, encoding_weight(noise))
-    height_ratio = semi[:, 2] / (0.5 * (semi[:, 0] + semi[:, 1]))
-    plausible = (height_ratio >= HEIGHT_RATIO_RANGE[0]) & (height_ratio <= HEIGHT_RATIO_RANGE[1])
-    keep = (counts >= SURFACE_MIN_POINTS) & np.isfinite(refined).all(1) & plausible
+    padded = _padded_clusters(points, orientation, lab, counts)
+    refined, semi, distance = _fit_surfaces(padded, centers, rotations, scales, iterations, SURFACE_ENCODING_WEIGHT)
+    keep = _kept_fits(refined, semi, counts)
+    weight = encoding_weight(_median_distance(distance, padded[2], keep))
+    if weight > SURFACE_ENCODING_WEIGHT:
+        refined, semi, _ = _fit_surfaces(padded, centers, rotations, scales, iterations, weight)
+        keep = _kept_fits(refined, semi, counts)
     return np.where(keep[:, None], refined, rotations[:, :, 2])
 
 
-def _fit_surfaces(clusters: tuple, centers: np.ndarray, rotations: np.ndarray, scales: np.ndarray,
-                  iterations: int, weight_of_encoding: float) -> tuple[np.ndarray, np.ndarray, float]:
+def _kept_fits(refined: np.ndarray, semi: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Which clusters' fitted axes stand: enough points, finite, and a height ratio in
+    ``HEIGHT_RATIO_RANGE`` (outside it the fit has turned a flat, half-seen dome over)."""
+    height_ratio = semi[:, 2] / (0.5 * (semi[:, 0] + semi[:, 1]))
+    plausible = (height_ratio >= HEIGHT_RATIO_RANGE[0]) & (height_ratio <= HEIGHT_RATIO_RANGE[1])
+    return (counts >= SURFACE_MIN_POINTS) & np.isfinite(refined).all(1) & plausible
+
+
+def _median_distance(distance: np.ndarray, real: np.ndarray, keep: np.ndarray) -> float:
+    """The median of the (K, width) distances from the fitted surfaces over the points (``real``) of
+    the clusters whose fits stand (``keep``), finite ones only; 0 when there are none."""
+    values = distance[keep][real[keep] > 0]
+    values = values[np.isfinite(values)]
+    return float(np.median(values)) if len(values) else 0.0
+
+
+def _in_cap_frames(padded_points: np.ndarray, center: np.ndarray, rotation: np.ndarray,
+                   semi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The padded points in each cap's frame q (K, 3, width), their ellipsoidal radius rho (at least
+    1e-9; 1 on the surface) and the caps' mean base semi-axes (K, 1): a point's distance from its
+    surface is |rho - 1| times that."""
+    q = rotation.transpose(0, 2, 1) @ (padded_points - center[:, :, None])
+    q_scaled = q * (1.0 / semi)[:, :, None]
+    rho = np.sqrt(np.einsum("kiw,kiw->kw", q_scaled, q_scaled))
+    np.maximum(rho, 1e-9, out=rho)
+    return q, rho, 0.5 * (semi[:, :1] + semi[:, 1:2])
+
+
+def _fit_surfaces(padded: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], centers: np.ndarray,
+                  rotations: np.ndarray, scales: np.ndarray, iterations: int,
+                  weight_of_encoding: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``refine_axes``'s Gauss-Newton steps on the padded clusters (``_padded_clusters``) with the
-    encoding residual weighted ``weight_of_encoding``: the fitted axes (K, 3), semi-axes (K, 3), and the
-    median distance of the points from their fitted surfaces (metres)."""
-    padded_points, values, real, cell = clusters
+    encoding residual weighted ``weight_of_encoding``: the fitted axes (K, 3), semi-axes (K, 3), and
+    each padded slot's distance from its fitted surface (K, width; metres)."""
+    padded_points, values, real, cell = padded
     k, width = real.shape
     center, rotation = centers.copy(), rotations.copy()
     log_axes = np.log(np.maximum(scales, 1e-6))
     # the Jacobian's nine rows and, last, the residuals: one batched product gives J J^T and J r
     rows = np.zeros((k, 10, 2 * width))
     surface_rows, encoding_rows = rows[:, :, :width], rows[:, :, width:]
-    encoding_weights = weight_of_encoding * real
-    minus_weight, minus_weighted_values = -encoding_weights, -encoding_weights * values
+    encoding_rows_weight = weight_of_encoding * real
+    minus_weight, minus_weighted_values = -encoding_rows_weight, -encoding_rows_weight * values
     for _ in range(iterations):
         semi = np.exp(log_axes)
         inverse_semi = (1.0 / semi)[:, :, None]
-        q = rotation.transpose(0, 2, 1) @ (padded_points - center[:, :, None])
-        q_scaled = q * inverse_semi
-        rho = np.sqrt(np.einsum("kiw,kiw->kw", q_scaled, q_scaled))
-        np.maximum(rho, 1e-9, out=rho)
-        mean_radius = 0.5 * (semi[:, :1] + semi[:, 1:2])
+        q, rho, mean_radius = _in_cap_frames(padded_points, center, rotation, semi)
         miss = rho - 1.0
         surface = miss * mean_radius
         distance = np.abs(surface)
@@ -321,9 +348,9 @@ def _fit_surfaces(clusters: tuple, centers: np.ndarray, rotations: np.ndarray, s
         surface_rows[:, 6:8] += half_miss[:, None] * semi[:, :2, None]
         np.multiply(rotation[:, :, 2:], minus_weight[:, None], out=encoding_rows[:, :3])
         np.multiply(q[:, 1], minus_weight, out=encoding_rows[:, 3])
-        np.multiply(q[:, 0], encoding_weights, out=encoding_rows[:, 4])
+        np.multiply(q[:, 0], encoding_rows_weight, out=encoding_rows[:, 4])
         np.multiply(minus_weighted_values, semi[:, 2:], out=encoding_rows[:, 8])
-        np.add(encoding_weights * q[:, 2], encoding_rows[:, 8], out=encoding_rows[:, 9])
+        np.add(encoding_rows_weight * q[:, 2], encoding_rows[:, 8], out=encoding_rows[:, 9])
         products = rows @ rows.transpose(0, 2, 1)
         normal, gradient = products[:, :9, :9], products[:, :9, 9:]
         diagonal = products.reshape(k, 100)[:, :99:11]
@@ -337,10 +364,8 @@ def _fit_surfaces(clusters: tuple, centers: np.ndarray, rotations: np.ndarray, s
         rotation = rotation @ Rotation.from_rotvec(step[:, 3:6]).as_matrix()
         log_axes += np.minimum(np.maximum(step[:, 6:], -0.2), 0.2)
     semi = np.exp(log_axes)
-    q = (rotation.transpose(0, 2, 1) @ (padded_points - center[:, :, None])) / semi[:, :, None]
-    rho = np.sqrt(np.einsum("kiw,kiw->kw", q, q))
-    distance = np.abs(rho - 1.0) * 0.5 * (semi[:, :1] + semi[:, 1:2])
-    return rotation[:, :, 2], semi, float(np.median(distance.reshape(-1)[cell]))
+    _, rho, mean_radius = _in_cap_frames(padded_points, center, rotation, semi)
+    return rotation[:, :, 2], semi, np.abs(rho - 1.0) * mean_radius
 
 
 def _padded_clusters(points: np.ndarray, orientation: np.ndarray, lab: np.ndarray,

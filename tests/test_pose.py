@@ -154,11 +154,29 @@ def test_a_noisy_surface_yields_the_axis_to_the_encoding(monkeypatch):
     assert np.mean(raised) < 0.75 * np.mean(fixed)
 
 
+def test_the_encoding_weight_is_fixed_up_to_the_reference_noise_then_proportional():
+    reference, fixed = pose.SURFACE_NOISE_REFERENCE, pose.SURFACE_ENCODING_WEIGHT
+    assert pose.encoding_weight(0.0) == pose.encoding_weight(reference) == fixed
+    assert pose.encoding_weight(3 * reference) == pytest.approx(3 * fixed)
+
+
+def test_the_median_distance_counts_only_the_points_of_fits_that_stand():
+    """Padded slots (``real`` 0), clusters whose fit is dropped and non-finite distances stay out."""
+    distance = np.array([[1.0, 2.0, 9.0, 9.0], [3.0, 4.0, 5.0, np.nan], [7.0, 7.0, 7.0, 7.0]])
+    real = np.array([[1, 1, 0, 0], [1, 1, 1, 1], [1, 1, 1, 1]], float)
+    keep = np.array([True, True, False])
+    assert pose._median_distance(distance, real, keep) == 3.0  # the median of 1, 2, 3, 4, 5
+    assert pose._median_distance(distance, real, np.zeros(3, bool)) == 0.0
+
+
 def test_a_clean_surface_keeps_the_fixed_encoding_weight(monkeypatch):
     """Below ``SURFACE_NOISE_REFERENCE`` the weight is the fixed one: the same axes to the last bit."""
     points, centers, orientation, labels, _ = oval_caps(count=12, encoding_tilt_deg=1.0, position_noise=1e-4)
     args = (points, centers, orientation, np.ones(len(points)), labels)
+    measured, weight_of = [], pose.encoding_weight
+    monkeypatch.setattr(pose, "encoding_weight", lambda noise: measured.append(noise) or weight_of(noise))
     default = fit_caps(*args).rotations
+    assert len(measured) == 1 and 0 < measured[0] < pose.SURFACE_NOISE_REFERENCE
     monkeypatch.setattr(pose, "SURFACE_NOISE_REFERENCE", np.inf)
     np.testing.assert_array_equal(fit_caps(*args).rotations, default)
     monkeypatch.setattr(pose, "SURFACE_NOISE_REFERENCE", 1e-5)

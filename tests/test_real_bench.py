@@ -129,20 +129,22 @@ def test_pair_errors_by_hand():
 def test_per_cap_rows_by_hand():
     """Labels tilted 0 and 45 degrees from a bed normal along y (not z, so that the tilt is taken from
     it); a detection 25 % too big and turned 45 degrees on the first, the second missed, the partial
-    one left out."""
+    one left out, a detection 5 % too big on the last."""
     labels = real.read_caps([cap(0, 0, radius=0.02, axis=[0, 1, 0]), cap(0.1, 0, radius=0.01, axis=[0, 1, 1]),
-                             cap(0.2, 0, radius=0.03, axis=[0, 1, 0], partial=True)])
-    preds = real.read_caps([cap(0.001, 0, radius=0.025, axis=[1, 1, 0])])
+                             cap(0.2, 0, radius=0.03, axis=[0, 1, 0], partial=True),
+                             cap(0.3, 0, radius=0.04, axis=[0, 1, 0])])
+    preds = real.read_caps([cap(0.3, 0, radius=0.042, axis=[0, 1, 0]), cap(0.001, 0, radius=0.025, axis=[1, 1, 0])])
     rows = real.per_cap(preds, labels, np.array(real.score(preds, labels)["pairs"]), np.array([0.0, 2.0, 0.0]))
-    assert [r["label"] for r in rows] == [0, 1]
-    first, second = rows
+    assert [r["label"] for r in rows] == [0, 1, 3]
+    first, second, third = rows
+    assert third["radius_rel_signed"] == pytest.approx(0.05) and third["axis_deg"] == pytest.approx(0.0)
     assert first["found"] and not second["found"]
     assert (first["radius_mm"], first["detected_radius_mm"]) == pytest.approx((20.0, 25.0))
     assert first["radius_rel_signed"] == pytest.approx(0.25)
     assert (first["axis_deg"], first["tilt_deg"], first["detected_tilt_deg"]) == pytest.approx((45.0, 0.0, 45.0))
     assert (second["radius_mm"], second["tilt_deg"]) == pytest.approx((10.0, 45.0))
-    lines = real.cap_report(rows)
-    assert len(lines) == 3 and "+25.0 %" in lines[1] and "missed" in lines[2]
+    lines = real.cap_report(rows)  # the largest radius error first, the missed label last
+    assert len(lines) == 4 and "+25.0 %" in lines[1] and "+5.0 %" in lines[2] and "missed" in lines[3]
 
 
 def test_recall_by_size():
