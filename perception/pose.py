@@ -250,8 +250,9 @@ def encoding_weight(noise: float) -> float:
     a noisy cloud through its voxels and its encoding degrades far less. Val50 beds (the first 10, read
     four times) with Gaussian noise of 0.6 mm added: angle from the truth 6.62 degrees with the fixed
     weight, 4.73 with the encoding alone, 6.09 with this weight. The real cloud of ../shared/real/
-    (0.39-0.41 mm off the fitted surfaces): its caps' axes 17.1 degrees from its labels' on average with the
-    fixed weight, 12.5 with the encoding alone, 15.0 with this weight (median 12.3, 8.0, 11.1)."""
+    (0.39-0.41 mm off the fitted surfaces): its caps' axes 17.1 degrees from its labels' on average
+    with the fixed weight, 12.5 with the encoding alone, 15.0 with this weight (median 12.3, 8.0,
+    11.1)."""
     return SURFACE_ENCODING_WEIGHT * max(1.0, noise / SURFACE_NOISE_REFERENCE)
 
 
@@ -268,10 +269,9 @@ def refine_axes(points: np.ndarray, orientation: np.ndarray, lab: np.ndarray, ce
     beside it, ``SURFACE_ENCODING_WEIGHT`` times the encoding's miss along the axis, q_z - y a_z. Where
     the points of the fits that stand then lie a median distance off their surfaces above
     ``SURFACE_NOISE_REFERENCE`` (a noisy cloud), the fit runs again from the encoding's pose with the
-    weight ``encoding_weight`` gives. Steps
-    are bounded (0.45 rad, 6 mm, 20 % in size), and a fit that has turned a flat, half-seen dome over
-    fails the height-ratio gate. Only the axis is kept: the fitted centre and semi-axes are worse than
-    the encoding's on small caps.
+    weight ``encoding_weight`` gives. Steps are bounded (0.45 rad, 6 mm, 20 % in size), and a fit that
+    has turned a flat, half-seen dome over fails the height-ratio gate. Only the axis is kept: the
+    fitted centre and semi-axes are worse than the encoding's on small caps.
     """
     counts = np.bincount(lab, minlength=len(centers))
     padded = _padded_clusters(points, orientation, lab, counts)
