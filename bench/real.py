@@ -211,12 +211,14 @@ def per_cap(preds: Caps, labels: Caps, pairs: np.ndarray, up: np.ndarray) -> lis
     """One row per non-partial label: its radius and tilt from ``up`` (the bed's normal), and for the
     detection matched to it the radius, signed relative radius error, axis error and tilt (None when
     missed). Where the mean errors come from, cap by cap."""
+    from perception.cap import tilt_deg
+
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
     match = dict(zip(pairs[:, 1].tolist(), pairs[:, 0].tolist()))
     up = up / np.linalg.norm(up)
 
     def tilt(axis: np.ndarray) -> float:
-        return float(np.degrees(np.arccos(np.clip(abs(axis @ up), 0.0, 1.0))))
+        return float(tilt_deg(axis, up))
 
     rows = []
     for j in np.flatnonzero(~labels.partial):

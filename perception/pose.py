@@ -301,15 +301,16 @@ def _median_distance(distance: np.ndarray, real: np.ndarray, keep: np.ndarray) -
 
 
 def _in_cap_frames(padded_points: np.ndarray, center: np.ndarray, rotation: np.ndarray,
-                   semi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The padded points in each cap's frame q (K, 3, width), their ellipsoidal radius rho (at least
-    1e-9; 1 on the surface) and the caps' mean base semi-axes (K, 1): a point's distance from its
-    surface is |rho - 1| times that."""
+                   semi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The padded points in each cap's frame q (K, 3, width), the inverse semi-axes (K, 3, 1), the
+    points' ellipsoidal radius rho (at least 1e-9; 1 on the surface) and the caps' mean base semi-axes
+    (K, 1): a point's distance from its surface is |rho - 1| times that."""
     q = rotation.transpose(0, 2, 1) @ (padded_points - center[:, :, None])
-    q_scaled = q * (1.0 / semi)[:, :, None]
+    inverse_semi = (1.0 / semi)[:, :, None]
+    q_scaled = q * inverse_semi
     rho = np.sqrt(np.einsum("kiw,kiw->kw", q_scaled, q_scaled))
     np.maximum(rho, 1e-9, out=rho)
-    return q, rho, 0.5 * (semi[:, :1] + semi[:, 1:2])
+    return q, inverse_semi, rho, 0.5 * (semi[:, :1] + semi[:, 1:2])
 
 
 def _fit_surfaces(padded: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], centers: np.ndarray,
@@ -329,8 +330,7 @@ def _fit_surfaces(padded: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
     minus_weight, minus_weighted_values = -encoding_rows_weight, -encoding_rows_weight * values
     for _ in range(iterations):
         semi = np.exp(log_axes)
-        inverse_semi = (1.0 / semi)[:, :, None]
-        q, rho, mean_radius = _in_cap_frames(padded_points, center, rotation, semi)
+        q, inverse_semi, rho, mean_radius = _in_cap_frames(padded_points, center, rotation, semi)
         miss = rho - 1.0
         surface = miss * mean_radius
         distance = np.abs(surface)
@@ -364,7 +364,7 @@ def _fit_surfaces(padded: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
         rotation = rotation @ Rotation.from_rotvec(step[:, 3:6]).as_matrix()
         log_axes += np.minimum(np.maximum(step[:, 6:], -0.2), 0.2)
     semi = np.exp(log_axes)
-    _, rho, mean_radius = _in_cap_frames(padded_points, center, rotation, semi)
+    _, _, rho, mean_radius = _in_cap_frames(padded_points, center, rotation, semi)
     return rotation[:, :, 2], semi, np.abs(rho - 1.0) * mean_radius
 
 
