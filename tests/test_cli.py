@@ -100,13 +100,15 @@ def test_every_train_config_field_is_a_flag():
         "--tilt-deg", "0", "--noise", "0", "--cap-scale", "0.7", "1.2", "--spacing", "0.004",
         "--spacing-jitter", "0.9", "1.1", "--cap-height", "0.4", "1.1", "--cluster-probability", "0.6",
         "--views", "1", "4", "--cluster-spacing", "0.6", "1.1", "--visibility", "fused",
-        "--fused-share", "0.3", "--soil-holes", "0.1", "0.4", "--soil-lumps", "2", "9"]))
+        "--fused-share", "0.3", "--soil-holes", "0.1", "0.4", "--soil-lumps", "2", "9",
+        "--soil-banks", "1", "5"]))
     changed = {name for name, value in vars(config).items() if value != getattr(TrainConfig(), name)}
     assert changed == set(vars(config)), set(vars(config)) - changed
     assert config.init_weights.endswith("/start.pt") and config.point_dropout == (0.1, 0.3)
     assert config.scene == SceneConfig(spacing=0.004, scale=(0.7, 1.2), jitter=(0.9, 1.1), cap_height=(0.4, 1.1),
                                        cluster_probability=0.6, views=(1, 4), cluster_spacing=(0.6, 1.1),
-                                       visibility="fused", soil_holes=(0.1, 0.4), soil_lumps=(2, 9))
+                                       visibility="fused", soil_holes=(0.1, 0.4), soil_lumps=(2, 9),
+                                       soil_banks=(1, 5))
 
 
 def test_config_flags_are_read_from_the_source_as_the_dataclass_has_them():
@@ -223,7 +225,8 @@ def test_a_spacing_in_millimetres_or_too_fine_gives_one_line_and_exit_2(tmp_path
 
 @pytest.mark.parametrize("flag,low,high", [(flag, "0.3", "0.2") for flag in (
     "--scale-jitter", "--point-dropout", "--cap-scale", "--spacing-jitter", "--cap-height", "--cluster-spacing",
-    "--soil-holes")] + [("--views", "3", "2"), ("--soil-lumps", "5", "2")])
+    "--soil-holes")] + [("--views", "3", "2"), ("--soil-lumps", "5", "2"),
+                                  ("--soil-banks", "5", "2")])
 def test_a_range_upside_down_gives_one_line_and_exit_2(tmp_path, capsys, flag, low, high):
     from pipeline.cli import main
 

@@ -249,6 +249,49 @@ def test_soil_lumps_are_rough_mounds_of_soil_a_few_centimetres_across():
         SceneConfig(soil_lumps=(3, 1))
 
 
+def test_soil_banks_rise_on_one_side_of_a_cap_up_its_stem():
+    from perception.synthetic.terrain import SOIL_BANK_RISE, SOIL_LUMP_ROUGHNESS, Heightfield, soil_bank_heights
+
+    xs = np.linspace(-0.25, 0.25, 126)
+    flat = Heightfield(xs, xs.copy(), np.zeros((126, 126)))
+    rng = np.random.default_rng(2)
+    assert not soil_bank_heights(rng, flat, np.zeros((0, 2)), np.zeros(0), np.zeros(0)).any()
+    assert rng.random() == np.random.default_rng(2).random()  # nothing drawn for no caps
+    caps, radius, rise = np.array([[-0.1, -0.1], [0.1, 0.1]]), np.array([0.02, 0.025]), np.array([0.01, 0.015])
+    raised = soil_bank_heights(np.random.default_rng(2), flat, caps, radius, rise)
+    gx, gy = np.meshgrid(xs, xs)
+    distance = [np.hypot(gx - x, gy - y) for x, y in caps]
+    near = [d < 3.5 * r for d, r in zip(distance, radius)]
+    assert raised[~(near[0] | near[1])].max() < 0.05 * raised.max()  # a bank per cap, nothing elsewhere
+    for d, n, r, top in zip(distance, near, radius, rise):
+        peak = np.unravel_index(np.argmax(np.where(n, raised, 0)), raised.shape)
+        # the crest stands 0.7-1.1 radii from the axis (4 mm cells: 0.56-1.24) and reaches 0.4-0.9 of the
+        # centre's height (its Gaussian's top may fall between cells; crumbs add up to 3 x 25 %)
+        assert 0.5 * r < d[peak] < 1.3 * r
+        assert 0.8 * SOIL_BANK_RISE[0] * top < raised[peak] < SOIL_BANK_RISE[1] * top * (1 + 3 * SOIL_LUMP_ROUGHNESS)
+        # on one side only: across the axis from the crest the soil stays low
+        mirror = tuple(np.clip(2 * np.array(np.unravel_index(np.argmin(d), d.shape)) - peak, 0, 125))
+        assert raised[mirror] < 0.4 * raised[peak]
+    # in a bed, banks stand only beside its smaller half of caps, below their centres; the caps stay put
+    config = SceneConfig(mushrooms=(12, 12), distractors=(0, 0))
+    plain = build_bed(np.random.default_rng(8), config)
+    banked = build_bed(np.random.default_rng(8), dataclasses.replace(config, soil_banks=(12, 12)))
+    np.testing.assert_array_equal(plain.centers, banked.centers)
+    ground = 126 * 126
+    rise_of_soil = banked.vertices[:ground, 2] - plain.vertices[:ground, 2]
+    assert (rise_of_soil >= 0).all() and (rise_of_soil > 0.002).sum() > 20
+    radii = plain.scales[:, :2].max(1)
+    small = radii <= np.median(radii)
+    raised_xy = plain.vertices[:ground][rise_of_soil > 0.001, :2]
+    to_cap = np.hypot(*(raised_xy[:, None] - plain.centers[None, :, :2]).transpose(2, 0, 1)) / radii
+    assert (to_cap[:, small].min(1) < 3.5).all()
+    below = plain.centers[:, 2] - plain.vertices[:ground][np.argmin(np.hypot(
+        *(plain.vertices[:ground, None, :2] - plain.centers[None, :, :2]).transpose(2, 0, 1)), 0), 2]
+    assert rise_of_soil.max() < below[small].max() * SOIL_BANK_RISE[1] * (1 + 3 * SOIL_LUMP_ROUGHNESS)
+    with pytest.raises(ValueError, match="soil bank"):
+        SceneConfig(soil_banks=(3, 1))
+
+
 def test_encoding_follows_the_definitions():
     centers = np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0]])
     rotations = np.stack([np.eye(3), np.eye(3)])

@@ -23,7 +23,7 @@ from perception.encoding import EncodingTargets, encode
 from perception.synthetic.template import RIM_RATIO, STEM_LENGTH_RATIO, STEM_RADIUS_RATIO, mushroom_template
 from perception.synthetic.terrain import (TERRAINS, Distractor, add_soil_lumps, deform_along_normals,
                                           deform_heightfield_mesh, heightfield_mesh, random_distractor,
-                                          soil_heightfield)
+                                          soil_bank_heights, soil_heightfield)
 
 VISIBILITY_MODELS = ("hpr", "camera", "fused", "katz")
 """hpr: hidden point removal by z-buffer (fast); camera: the virtual depth camera; fused: the virtual
@@ -83,6 +83,11 @@ class SceneConfig:
     """How many casing-soil lumps a bed has, drawn from [low, high]: rough bare-soil mounds 2-6 cm
     across (``terrain.add_soil_lumps``), as a real bed's casing shows and as tall as a small cap. They
     are soil, so a detector learns that a mound alone is not a cap. 0 0 draws nothing."""
+    soil_banks: tuple[int, int] = (0, 0)
+    """How many of a bed's smaller caps (radius up to the bed's median) stand in casing soil banked
+    against one side, drawn from [low, high]: a rough crest up the stem to below the dome
+    (``terrain.soil_bank_heights``), so that soil and cap meet in one slope, as young caps stand on a
+    real bed. 0 0 draws nothing."""
     ground_cell: float = 0.004
     sensor: SensorModel = field(default_factory=SensorModel)
 
@@ -106,6 +111,8 @@ class SceneConfig:
             raise ValueError(f"soil hole shares must satisfy 0 <= low <= high <= 1, got {self.soil_holes}")
         if any(int(count) != count for count in self.soil_lumps) or not 0 <= self.soil_lumps[0] <= self.soil_lumps[1]:
             raise ValueError(f"soil lump counts must satisfy 0 <= low <= high, got {self.soil_lumps}")
+        if any(int(count) != count for count in self.soil_banks) or not 0 <= self.soil_banks[0] <= self.soil_banks[1]:
+            raise ValueError(f"soil bank counts must satisfy 0 <= low <= high, got {self.soil_banks}")
         if self.spacing <= 0 or self.bed_size <= 0:
             raise ValueError("spacing and bed size must be positive")
 
@@ -279,6 +286,17 @@ class _Placer:
                     self.placed += 1
 
 
+def _banks_against_small_caps(rng: np.random.Generator, config: SceneConfig, field, centers: np.ndarray,
+                              axes: np.ndarray) -> np.ndarray:
+    """The soil's rise (the field's grid) where banks stand against some of the bed's smaller caps."""
+    radius = CAP_RADIUS_AT_UNIT_SCALE * axes[:, :2].max(1)
+    small = np.flatnonzero(radius <= np.median(radius))
+    count = min(int(rng.integers(config.soil_banks[0], config.soil_banks[1] + 1)), len(small))
+    chosen = rng.choice(small, count, replace=False)
+    rise = centers[chosen, 2] - field.sample(centers[chosen, 0], centers[chosen, 1])
+    return soil_bank_heights(rng, field, centers[chosen, :2], radius[chosen], rise)
+
+
 def build_bed(rng: np.random.Generator, config: SceneConfig) -> BedMeshes:
     """Soil, distractors and mushrooms as meshes, with each mushroom's true pose."""
     terrain = config.terrain or TERRAINS[int(rng.integers(len(TERRAINS)))]
@@ -295,6 +313,8 @@ def build_bed(rng: np.random.Generator, config: SceneConfig) -> BedMeshes:
     k = placer.placed
     template = mushroom_template()
     centers, rotations, axes = placer.centers[:k], placer.rotations[:k], placer.axes[:k]
+    if config.soil_banks[1] > 0 and k:  # drawn only when asked, so other configs keep their beds
+        ground_vertices[:, 2] += _banks_against_small_caps(rng, config, field, centers, axes).ravel()
     local = deform_along_normals(rng, np.broadcast_to(template.vertices, (k,) + template.vertices.shape),
                                  template.normals, count=4, magnitude=0.0005, radius=(0.003, 0.008))
     mushroom_vertices = (local * axes[:, None]) @ rotations.transpose(0, 2, 1) + centers[:, None]

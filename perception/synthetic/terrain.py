@@ -100,20 +100,55 @@ def add_soil_lumps(rng: np.random.Generator, field: Heightfield, count: int) -> 
         return field
     gx, gy = np.meshgrid(field.xs, field.ys)
     half = field.xs[-1]
-    lumps = np.zeros(field.height.shape)
     blobs = rng.integers(2, 4, count)
     owner = np.repeat(np.arange(count), blobs)
     centre = rng.uniform(-half, half, (count, 2))[owner] + rng.normal(0, SOIL_LUMP_WIDTH[0], (len(owner), 2))
     width = rng.uniform(*SOIL_LUMP_WIDTH, (len(owner), 2))
     angle = rng.uniform(0, np.pi, len(owner))
     height = rng.uniform(*SOIL_LUMP_HEIGHT, count)[owner] * rng.uniform(0.5, 1.0, len(owner))
-    cos, sin = np.cos(angle), np.sin(angle)
-    for blob in range(len(owner)):  # a few dozen blobs, each over the grid: 2.5x faster than all at once
-        dx, dy = gx - centre[blob, 0], gy - centre[blob, 1]
-        u, v = (cos[blob] * dx + sin[blob] * dy) / width[blob, 0], (cos[blob] * dy - sin[blob] * dx) / width[blob, 1]
-        lumps = np.maximum(lumps, height[blob] * np.exp(-0.5 * (u * u + v * v)))
+    lumps = _blob_heights(gx, gy, centre, width, angle, height)
     crumbs = SOIL_LUMP_ROUGHNESS * np.abs(_smooth_noise(rng, field.height.shape, 0.7))
     return Heightfield(field.xs, field.ys, field.height + lumps * (1.0 + crumbs))
+
+
+def _blob_heights(gx: np.ndarray, gy: np.ndarray, centre: np.ndarray, width: np.ndarray, angle: np.ndarray,
+                  height: np.ndarray) -> np.ndarray:
+    """The highest of anisotropic Gaussian blobs over the grid (gx, gy): blob b peaks at ``height[b]``
+    over ``centre[b]``, with standard deviations ``width[b]`` along the axes turned by ``angle[b]``."""
+    raised = np.zeros(gx.shape)
+    cos, sin = np.cos(angle), np.sin(angle)
+    for blob in range(len(height)):  # a few dozen blobs, each over the grid: 2.5x faster than all at once
+        dx, dy = gx - centre[blob, 0], gy - centre[blob, 1]
+        u, v = (cos[blob] * dx + sin[blob] * dy) / width[blob, 0], (cos[blob] * dy - sin[blob] * dx) / width[blob, 1]
+        raised = np.maximum(raised, height[blob] * np.exp(-0.5 * (u * u + v * v)))
+    return raised
+
+
+SOIL_BANK_DISTANCE = (0.7, 1.1)
+"""Distance of a bank's crest from its cap's axis, as a factor on the cap's radius."""
+SOIL_BANK_WIDTH = ((0.4, 0.8), (0.6, 1.2))
+"""A bank's standard deviations towards its cap and along its rim, as factors on the cap's radius."""
+SOIL_BANK_RISE = (0.4, 0.9)
+"""A bank's height as a share of its cap's centre's height over the soil: up its stem, short of the dome."""
+
+
+def soil_bank_heights(rng: np.random.Generator, field: Heightfield, cap_xy: np.ndarray, cap_radius: np.ndarray,
+                      cap_rise: np.ndarray) -> np.ndarray:
+    """How far the soil of ``field`` rises (its grid's shape) where casing soil is banked against one side of
+    each cap given (centre xy, radius, centre's height over the soil, metres): a rough crest beside the cap,
+    up its stem to below the dome, so that soil and cap meet in one slope. On a real bed young caps push
+    up through the casing and stand in such banks, which a detector must not take for part of the cap."""
+    n = len(cap_radius)
+    if n == 0:
+        return np.zeros(field.height.shape)
+    gx, gy = np.meshgrid(field.xs, field.ys)
+    direction = rng.uniform(0, 2 * np.pi, n)
+    reach = cap_radius * rng.uniform(*SOIL_BANK_DISTANCE, n)
+    centre = cap_xy + reach[:, None] * np.stack([np.cos(direction), np.sin(direction)], 1)
+    width = cap_radius[:, None] * np.stack([rng.uniform(*SOIL_BANK_WIDTH[0], n), rng.uniform(*SOIL_BANK_WIDTH[1], n)], 1)
+    height = np.maximum(cap_rise, 0.0) * rng.uniform(*SOIL_BANK_RISE, n)
+    banks = _blob_heights(gx, gy, centre, width, direction, height)
+    return banks * (1.0 + SOIL_LUMP_ROUGHNESS * np.abs(_smooth_noise(rng, field.height.shape, 0.7)))
 
 
 def heightfield_mesh(field: Heightfield) -> tuple[np.ndarray, np.ndarray]:

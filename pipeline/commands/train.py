@@ -63,6 +63,9 @@ SCENE_FLAGS = {
     "soil_lumps": {"name": "soil-lumps", "parse": non_negative(int), "metavar": RANGE,
                    "help": "Casing-soil lumps per bed, from [low, high]: rough bare-soil mounds 2-6 cm across "
                            "that are not caps, as a real bed's casing shows (0 0: none)."},
+    "soil_banks": {"name": "soil-banks", "parse": non_negative(int), "metavar": RANGE,
+                   "help": "Caps per bed, from [low, high], among the smaller half, with casing soil banked "
+                           "against one side up to below the dome, as young caps stand on a real bed (0 0: none)."},
     "cluster_probability": {"name": "cluster-probability", "parse": at_most(non_negative(float), 1.0),
                             "metavar": "P", "help": "Chance that a cap is placed touching an earlier one."},
     "cluster_spacing": {"name": "cluster-spacing", "parse": positive(float), "metavar": RANGE,
