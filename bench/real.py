@@ -10,7 +10,8 @@ closest first, one-to-one; ``partial`` labels are don't-care for the non-partial
 errors follow ../shared/real/score.py exactly: centre error is the 3D distance (the xy distance is
 printed beside it), axis error the angle between signed up-vectors, radius error |r_p - r_l| / r_l
 (with its signed median, and again against label radii freed of the labels' measured bias,
-``FOOTPRINT_RADIUS_BIAS``).
+``FOOTPRINT_RADIUS_BIAS``, and for the non-partial caps of the bias at each label's tilt,
+``FOOTPRINT_RADIUS_BIAS_BY_TILT``).
 score.py itself is run on the same detections and its precision, recall and F1 compared with ours.
 Beside them: where the false positives and misses sit, and (--by-size) recall by label radius.
 
@@ -57,6 +58,11 @@ FOOTPRINT_RADIUS_BIAS = -0.068
 fused synthetic beds, by ``python bench/label_quality.py --beds 10`` (the detector's own is -0.008
 there). ../shared/real/README.md says so too: dim or shaded rims shrink a label's radius. The radius
 error is also printed against label radii divided by 1 + this bias."""
+FOOTPRINT_RADIUS_BIAS_BY_TILT = ((20.0, -0.013), (35.0, -0.047), (90.0, -0.108))
+"""The same by a cap's tilt from the bed's normal, up to each bound in degrees (the table by tilt of
+``python bench/label_quality.py --beds 10``): a leaning rim seen from above covers less area, so the
+labels of leaning caps fall furthest short. The non-partial caps' radius error is also printed against
+label radii freed of the shortfall at each label's own tilt (``footprint_bias_at``)."""
 TURNS_DEG = (0.0, 11.0, 23.0, 37.0, 53.0, 71.0)
 """Turns of the cloud about the vertical through its centroid for --turns. The network's voxel grid is
 laid in the bed frame, whose x follows the input's x: turning the cloud lays the grid differently over
@@ -207,10 +213,19 @@ def recall_by_size(labels: Caps, pairs: np.ndarray) -> list[dict]:
     return rows
 
 
+def footprint_bias_at(tilt_deg: np.ndarray) -> np.ndarray:
+    """The footprint radius's shortfall (``FOOTPRINT_RADIUS_BIAS_BY_TILT``) at each tilt in degrees; nan
+    where the tilt is unknown (a label without an axis)."""
+    bounds = [bound for bound, _ in FOOTPRINT_RADIUS_BIAS_BY_TILT[:-1]]
+    bias = np.array([bias for _, bias in FOOTPRINT_RADIUS_BIAS_BY_TILT])[np.digitize(tilt_deg, bounds)]
+    return np.where(np.isfinite(tilt_deg), bias, np.nan)
+
+
 def per_cap(preds: Caps, labels: Caps, pairs: np.ndarray, up: np.ndarray) -> list[dict]:
     """One row per non-partial label: its radius and tilt from ``up`` (the bed's normal), and for the
-    detection matched to it the radius, signed relative radius error, axis error and tilt (None when
-    missed). Where the mean errors come from, cap by cap."""
+    detection matched to it the radius, signed relative radius error (also against the label's radius
+    freed of the footprint's shortfall at its tilt), axis error and tilt (absent when missed). Where the
+    mean errors come from, cap by cap."""
     from perception.cap import tilt_deg
 
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
@@ -227,8 +242,10 @@ def per_cap(preds: Caps, labels: Caps, pairs: np.ndarray, up: np.ndarray) -> lis
         if j in match:
             i = match[j]
             cosine = float(np.clip(preds.axes[i] @ labels.axes[j], -1.0, 1.0))
+            fair = labels.radii[j] / (1 + float(footprint_bias_at(row["tilt_deg"])))
             row.update(detected_radius_mm=1000 * float(preds.radii[i]),
                        radius_rel_signed=float((preds.radii[i] - labels.radii[j]) / labels.radii[j]),
+                       radius_rel_signed_tilt_unbiased=float((preds.radii[i] - fair) / fair),
                        axis_deg=float(np.degrees(np.arccos(cosine))), detected_tilt_deg=tilt(preds.axes[i]))
         rows.append(row)
     return rows
@@ -521,6 +538,10 @@ def report(figures: dict) -> list[str]:
                      f"{e['radius_rel_signed']['median']:+.3f} (above 0: detections are larger)")
         lines.append(f"    against label radii / {1 + FOOTPRINT_RADIUS_BIAS:g} (footprint bias removed) "
                      f"{_fmt(e['radius_rel_unbiased_labels'], '', 3)}")
+        if key == "errors_nonpartial" and "caps" in figures:
+            tilted = np.array([abs(r["radius_rel_signed_tilt_unbiased"]) for r in figures["caps"] if r["found"]])
+            lines.append(f"    against label radii freed of the footprint's shortfall at each label's tilt "
+                         f"{_fmt(_stats(tilted), '', 3)}")
     return lines
 
 
