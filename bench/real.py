@@ -60,9 +60,10 @@ there). ../shared/real/README.md says so too: dim or shaded rims shrink a label'
 error is also printed against label radii divided by 1 + this bias."""
 FOOTPRINT_RADIUS_BIAS_BY_TILT = ((20.0, -0.013), (35.0, -0.047), (90.0, -0.108))
 """The same by a cap's tilt from the bed's normal, up to each bound in degrees (the table by tilt of
-``python bench/label_quality.py --beds 10``): a leaning rim seen from above covers less area, so the
-labels of leaning caps fall furthest short. The non-partial caps' radius error is also printed against
-label radii freed of the shortfall at each label's own tilt (``footprint_bias_at``)."""
+``python bench/label_quality.py --beds 10``, binned there by the true tilt): a leaning rim seen from
+above covers less area, so the labels of leaning caps fall furthest short. The non-partial caps' radius
+error is also printed against label radii freed of the shortfall at each label's own tilt, which stands
+in for the true one (``footprint_bias_at``)."""
 TURNS_DEG = (0.0, 11.0, 23.0, 37.0, 53.0, 71.0)
 """Turns of the cloud about the vertical through its centroid for --turns. The network's voxel grid is
 laid in the bed frame, whose x follows the input's x: turning the cloud lays the grid differently over
