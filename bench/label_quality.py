@@ -37,7 +37,8 @@ from pipeline.sources import VirtualBed, virtual_bed_source  # noqa: E402
 
 ON_SURFACE, LABELLED_POINTS = 0.002, 250
 TILT_BINS_DEG = (20.0, 35.0)
-"""True tilt bin edges of the radius table by tilt: a footprint seen from above shrinks as a cap leans."""
+"""True tilt bin edges of the radius table by tilt: a footprint seen from above shrinks as a cap leans.
+bench/real.py reads that table's medians (``FOOTPRINT_RADIUS_BIAS_BY_TILT``, the same edges)."""
 
 
 def least_variance_axis(points: np.ndarray, up: np.ndarray) -> np.ndarray:

@@ -158,6 +158,7 @@ def test_radius_errors_against_labels_freed_of_the_footprint_shortfall_at_their_
     figures = real.score(preds, labels)
     figures["caps"] = real.per_cap(preds, labels, np.array(figures["pairs"]), np.array([0.0, 0.0, 1.0]))
     assert [r["radius_rel_signed_tilt_unbiased"] for r in figures["caps"]] == pytest.approx([0.0, 0.25 * 0.987 - 0.013])
+    figures["errors_nonpartial"]["radius_rel_tilt_unbiased_labels"] = real.tilt_unbiased_radius_errors(figures["caps"])
     line = [line for line in real.report(figures) if "at each label's tilt" in line]
     assert len(line) == 1 and "mean 0.117 / median 0.117 (n=2)" in line[0]
 
