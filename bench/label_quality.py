@@ -30,8 +30,8 @@ import torch  # noqa: E402
 from scipy.spatial import ConvexHull  # noqa: E402
 
 from perception.cap import tilt_deg  # noqa: E402
-from perception.detect import DEFAULT_WEIGHTS  # noqa: E402
-from perception.train import load_weights  # noqa: E402
+from perception.weights import DEFAULT_WEIGHTS  # noqa: E402
+from perception.weights import load_weights  # noqa: E402
 from pipeline.runner import RunConfig, Runner  # noqa: E402
 from pipeline.sources import VirtualBed, virtual_bed_source  # noqa: E402
 

@@ -26,11 +26,13 @@ import numpy as np
 import torch
 from sklearn.cluster import MeanShift
 
-from perception.detect import DEFAULT_WEIGHTS, at_training_density, network_input, network_output
+from perception.detect import at_training_density, network_input, network_output
+
+from perception.weights import DEFAULT_WEIGHTS
 from perception.instances import ClusterConfig, cluster
 from perception.pose import fit_caps
 from perception.synthetic.dataset import load_preset
-from perception.train import load_weights
+from perception.weights import load_weights
 from pipeline.process import reuse_freed_memory
 
 POSE_REPEATS = 25

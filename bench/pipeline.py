@@ -35,8 +35,9 @@ import torch  # noqa: E402
 
 from capture.mcap_io import McapRecorder, McapSource  # noqa: E402
 from capture.source import Source  # noqa: E402
-from perception.detect import DEFAULT_WEIGHTS, LIVE_READINGS, detect_points  # noqa: E402
-from perception.train import load_weights  # noqa: E402
+from perception.detect import LIVE_READINGS, detect_points  # noqa: E402
+from perception.weights import DEFAULT_WEIGHTS  # noqa: E402
+from perception.weights import load_weights  # noqa: E402
 from pipeline.sources import VirtualBed, virtual_bed_source  # noqa: E402
 
 FPS = 15.0

@@ -21,12 +21,13 @@ import time  # noqa: E402
 import torch  # noqa: E402
 
 from perception.cap import CAP_RADIUS_AT_UNIT_SCALE  # noqa: E402
-from perception.detect import DEFAULT_WEIGHTS, FILE_READINGS, find_caps, predict  # noqa: E402
+from perception.detect import FILE_READINGS, find_caps, predict  # noqa: E402
+from perception.weights import DEFAULT_WEIGHTS  # noqa: E402
 from perception.cap import Caps  # noqa: E402
 from perception.evaluate import evaluate  # noqa: E402
 from perception.synthetic.dataset import ground_truth_mask  # noqa: E402
 from perception.synthetic.scene import SceneConfig, generate_scene  # noqa: E402
-from perception.train import load_weights  # noqa: E402
+from perception.weights import load_weights  # noqa: E402
 from pipeline.process import reuse_freed_memory  # noqa: E402
 
 DIAMETER_BINS_MM = ((15, 30), (30, 45), (45, 60), (60, 80), (80, 100), (100, 120))

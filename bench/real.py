@@ -353,9 +353,10 @@ def stage_seconds(ply: Path, detect_args: list[str]) -> tuple[dict, np.ndarray, 
     instances, pose), with the calls of pipeline.cli.cmd_detect; also T_input_bed and the number of caps."""
     from common.geometry import transform_points
     from fusion.bed import estimate_bed_frame
-    from perception.detect import DEFAULT_WEIGHTS, detect_points, transform_result
+    from perception.detect import detect_points, transform_result
+    from perception.weights import DEFAULT_WEIGHTS
     from perception.instances import ClusterConfig
-    from perception.train import load_weights
+    from perception.weights import load_weights
     from pipeline.cli import build_parser
     from pipeline.clouds import load_cloud
     from pipeline.process import reuse_freed_memory

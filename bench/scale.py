@@ -26,7 +26,7 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from perception.detect import DEFAULT_WEIGHTS  # noqa: E402
+from perception.weights import DEFAULT_WEIGHTS  # noqa: E402
 from pipeline.check import Tolerances  # noqa: E402
 from pipeline.farm import FarmJob, replay_sessions  # noqa: E402
 from pipeline.replay import ReplayOptions  # noqa: E402
@@ -64,7 +64,8 @@ def run(sessions: list[Path], out: Path, use_ray: bool, address: str | None = No
 def train_run(folder: Path, iterations: int, address: str | None) -> tuple[float, dict]:
     """Wall time and final weights of a short run of the default recipe, its beds made as ``address`` says
     (None: a worker process; "local" or a cluster's address: Ray tasks)."""
-    from perception.train import TrainConfig, load_weights, train
+    from perception.train import TrainConfig, train
+    from perception.weights import load_weights
 
     config = TrainConfig(iterations=iterations, checkpoint_every=iterations, validation_scenes=0)
     started = time.perf_counter()

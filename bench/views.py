@@ -25,10 +25,11 @@ import torch  # noqa: E402
 
 from capture.source import Source  # noqa: E402
 from common.geometry import transform_points, turning_about_z  # noqa: E402
-from perception.detect import DEFAULT_WEIGHTS, LIVE_READINGS, detect_points  # noqa: E402
+from perception.detect import LIVE_READINGS, detect_points  # noqa: E402
+from perception.weights import DEFAULT_WEIGHTS  # noqa: E402
 from perception.cap import Caps  # noqa: E402
 from perception.evaluate import evaluate  # noqa: E402
-from perception.train import load_weights  # noqa: E402
+from perception.weights import load_weights  # noqa: E402
 from pipeline.process import reuse_freed_memory  # noqa: E402
 from pipeline.runner import PerceptionStage, RunConfig, Runner  # noqa: E402
 from pipeline.sources import VirtualBed, virtual_bed_source  # noqa: E402

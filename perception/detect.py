@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -16,8 +15,6 @@ from perception.model import LENGTH_UNIT, MushroomNet, inference_model, voxel_fe
 from perception.pose import RADIUS_MODES, fit_caps, with_rim_radii
 from perception.sparse import COORD_MAX, SparseTensor, voxel_average, voxelize
 
-
-DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "default.pt"
 
 
 @dataclass(frozen=True)
@@ -305,51 +302,3 @@ def log_rerun(rec, result: SceneResult, points: np.ndarray, entity: str = "world
     caps = result.caps
     log_caps(rec, f"{entity}/mushrooms", caps.centers, caps.rotations, caps.scales,
              labels=[f"#{k} {2000 * radius:.0f} mm" for k, radius in enumerate(caps.radii)], color=color)
-
-
-def evaluate_on_scenes(model: MushroomNet, scenes, methods=("meanshift", "dbscan"), height: str = "free",
-                       axis: str = "surface", progress: bool = False, zoom: float | None = None,
-                       use_ray: bool = False, ray_address: str | None = None, radius: str = "rim",
-                       readings: int = LIVE_READINGS) -> dict:
-    """The paper's metrics of ``model`` on synthetic scenes, per clustering method (each scene read
-    ``readings`` times at ``zoom``, by default the model's own); with ``use_ray`` each scene is read by a
-    Ray task (the same caps: a scene's reading depends on the scene and the model alone)."""
-    from tqdm import tqdm
-
-    from perception.evaluate import evaluate
-
-    scenes = list(scenes)
-    items = [(scene, methods, height, axis, zoom, radius, readings) for scene in scenes]
-    if use_ray:
-        from common.distributed import ray_map
-
-        read = ray_map(scene_caps, items, ray_address, shared=(model,))
-    else:
-        read = (scene_caps(model, *item) for item in items)
-    preds: dict[str, list] = {m: [] for m in methods}
-    gts = []
-    for found, truth in tqdm(read, desc="evaluating", unit="scene", total=len(items), disable=not progress,
-                             leave=False):
-        for method in methods:
-            preds[method].append(found[method])
-        gts.append(truth)
-    return {method: evaluate(preds[method], gts) for method in methods}
-
-
-def scene_caps(model: MushroomNet, scene, methods, height: str, axis: str, zoom: float | None, radius: str = "rim",
-               readings: int = LIVE_READINGS):
-    """A synthetic scene's caps per clustering method, and its visible ground truth."""
-    prediction = predict(model, scene.points, zoom=zoom, readings=readings)
-    found = {}
-    for method in methods:
-        found[method] = find_caps(prediction, model.config.voxel, ClusterConfig(method=method), height, axis,
-                                  radius=radius)[1]
-    return found, visible_truth(scene)
-
-
-def visible_truth(scene):
-    """A synthetic scene's caps that count as ground truth (``ground_truth_mask``)."""
-    from perception.synthetic.dataset import ground_truth_mask
-
-    visible = ground_truth_mask(scene)
-    return Caps(scene.centers[visible], scene.rotations[visible], scene.scales[visible])

@@ -14,6 +14,9 @@ import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
 from perception.cap import Caps, OrientedBox, cap_box
+from perception.detect import LIVE_READINGS, find_caps, predict
+from perception.instances import ClusterConfig
+from perception.model import MushroomNet
 
 ORIENTATION_IOU = 0.25
 """IoU threshold whose matches give the scale and orientation errors."""
@@ -263,3 +266,51 @@ def evaluate(preds: list[Caps], gts: list[Caps],
         n_gt=int(n_gt), n_pred=int(len(scores)), n_matched=int(len(dets)),
         ap=tuple((t, ap[t]) for t in all_thresholds),
     )
+
+
+# ---- the detector on synthetic scenes
+
+def evaluate_on_scenes(model: MushroomNet, scenes, methods=("meanshift", "dbscan"), height: str = "free",
+                       axis: str = "surface", progress: bool = False, zoom: float | None = None,
+                       use_ray: bool = False, ray_address: str | None = None, radius: str = "rim",
+                       readings: int = LIVE_READINGS) -> dict:
+    """The paper's metrics of ``model`` on synthetic scenes, per clustering method (each scene read
+    ``readings`` times at ``zoom``, by default the model's own); with ``use_ray`` each scene is read by a
+    Ray task (the same caps: a scene's reading depends on the scene and the model alone)."""
+    from tqdm import tqdm
+
+    scenes = list(scenes)
+    items = [(scene, methods, height, axis, zoom, radius, readings) for scene in scenes]
+    if use_ray:
+        from common.distributed import ray_map
+
+        read = ray_map(scene_caps, items, ray_address, shared=(model,))
+    else:
+        read = (scene_caps(model, *item) for item in items)
+    preds: dict[str, list] = {m: [] for m in methods}
+    gts = []
+    for found, truth in tqdm(read, desc="evaluating", unit="scene", total=len(items), disable=not progress,
+                             leave=False):
+        for method in methods:
+            preds[method].append(found[method])
+        gts.append(truth)
+    return {method: evaluate(preds[method], gts) for method in methods}
+
+
+def scene_caps(model: MushroomNet, scene, methods, height: str, axis: str, zoom: float | None, radius: str = "rim",
+               readings: int = LIVE_READINGS):
+    """A synthetic scene's caps per clustering method, and its visible ground truth."""
+    prediction = predict(model, scene.points, zoom=zoom, readings=readings)
+    found = {}
+    for method in methods:
+        found[method] = find_caps(prediction, model.config.voxel, ClusterConfig(method=method), height, axis,
+                                  radius=radius)[1]
+    return found, visible_truth(scene)
+
+
+def visible_truth(scene):
+    """A synthetic scene's caps that count as ground truth (``ground_truth_mask``)."""
+    from perception.synthetic.dataset import ground_truth_mask
+
+    visible = ground_truth_mask(scene)
+    return Caps(scene.centers[visible], scene.rotations[visible], scene.scales[visible])

@@ -35,7 +35,7 @@ their real size. Chosen on val50 (3 mm spacing, MeanShift) for a model trained o
 default jitter (``dense7k`` + ``tune1400``), zoom 1 / 1.025 / 1.05 / 1.075 / 1.1 / 1.15 / 1.2: AP@25
 99.30 / 99.42 / 99.64 / 99.49 / 99.47 / 99.44 / 98.02 %, cosine 0.9961 / 0.9968 / 0.9971 / 0.9969 /
 0.9963 / 0.9967 / 0.9971. Weights that record no zoom are read at 1.1
-(``perception.train.UNRECORDED_ZOOM``)."""
+(``perception.weights.UNRECORDED_ZOOM``)."""
 
 
 ENCODINGS = ("implicit", "explicit-centre", "explicit-orientation")

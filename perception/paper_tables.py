@@ -51,7 +51,7 @@ class Row:
 
 
 def ground_truth(scenes) -> list[Caps]:
-    from perception.detect import visible_truth
+    from perception.evaluate import visible_truth
 
     return [visible_truth(scene) for scene in scenes]
 

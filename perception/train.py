@@ -10,7 +10,6 @@ resumed run continues exactly where it stopped.
 from __future__ import annotations
 
 import csv
-import io
 import json
 import multiprocessing as mp
 import queue as queues
@@ -34,6 +33,8 @@ from perception.model import (INFERENCE_ZOOM, LENGTH_UNIT, NETWORK_PRESETS, Mush
                               NetworkConfig, voxel_features)
 from perception.sparse import SparseTensor
 from perception.synthetic.scene import SceneConfig, generate_scene
+from perception.weights import (UNRECORDED_ZOOM, WeightsWriteError, all_finite, load_weights, provenance, save_weights,
+                                 scene_spacing, write_payload)
 
 
 @dataclass(frozen=True)
@@ -174,7 +175,7 @@ def resumed_config(saved: dict, asked: TrainConfig) -> TrainConfig:
     ValueError names each field ``asked`` sets to another value than the run's."""
     default = TrainConfig().to_dict()
     saved = {**default, **saved}  # a checkpoint without a field ran with its default
-    saved["scene"] = {**default["scene"], **saved["scene"], "spacing": _scene_spacing(saved)}
+    saved["scene"] = {**default["scene"], **saved["scene"], "spacing": scene_spacing(saved)}
     saved["scene"].pop("voxel", None)
     wanted = asked.to_dict()
     merged = {name: saved[name] if value == default[name] else value
@@ -191,11 +192,6 @@ def resumed_config(saved: dict, asked: TrainConfig) -> TrainConfig:
 
     scene = SceneConfig(**tuples(merged.pop("scene")), sensor=asked.scene.sensor)
     return TrainConfig(**tuples(merged), scene=scene)
-
-
-def _all_finite(model: torch.nn.Module) -> bool:
-    """Whether every weight and running statistic is a finite number (a diverged run's are not)."""
-    return all(torch.isfinite(value).all() for value in model.state_dict().values() if value.is_floating_point())
 
 
 class TrainingError(RuntimeError):
@@ -389,20 +385,9 @@ def _weighted_mse(prediction: torch.Tensor, target: torch.Tensor, weight: torch.
     return (weight * squared).sum() / weight.sum().clamp(min=1.0)
 
 
-def _atomic_save(payload: dict, path: Path) -> None:
-    """``payload`` in ``path`` whole, or ``path`` as it was and a TrainingError that says why. Serialised
-    in memory first: torch reports a failed write (a full disk) only as an opaque RuntimeError."""
-    buffer = io.BytesIO()
-    torch.save(payload, buffer)
-    try:
-        write_atomically(path, buffer.getvalue())
-    except OSError as error:
-        raise TrainingError(f"cannot write {path}: {error.strerror or error}") from None
-
-
 def validate(model: MushroomNet, scenes) -> dict[str, float]:
     """The metrics of ``model`` read as it will be (perception.detect, at its own zoom)."""
-    from perception.detect import evaluate_on_scenes
+    from perception.evaluate import evaluate_on_scenes
 
     metrics = evaluate_on_scenes(model, scenes, methods=("meanshift",))["meanshift"].as_dict()
     model.train()
@@ -470,7 +455,7 @@ class TrainingRun:
             raise ValueError(f"{self.config.init_weights} holds a different network than {self.config.network!r}; "
                              "pass the --network it was trained with")
         self.model.load_state_dict(initial.state_dict())
-        return _provenance(path, meta)
+        return provenance(path, meta)
 
     def _resume(self) -> None:
         """Model, optimiser, schedule, weights' mean and torch RNG as the checkpoint left them."""
@@ -581,7 +566,7 @@ class TrainingRun:
 
     def save_checkpoint(self, iteration: int) -> None:
         """Everything a resumed run needs to go on exactly as this one would, written atomically."""
-        if not _all_finite(self.model):
+        if not all_finite(self.model):
             raise TrainingError(f"the weights are no longer finite at iteration {iteration}; {self._diverged()}")
         payload = {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
                    "scheduler": self.scheduler.state_dict(), "torch_rng": torch.get_rng_state(),
@@ -590,8 +575,8 @@ class TrainingRun:
                    "inference_zoom": self.model.inference_zoom,
                    "average": None if self.averaged is None else self.averaged.state_dict()}
         try:
-            _atomic_save(payload, self.checkpoint_path)
-        except TrainingError as error:
+            write_payload(payload, self.checkpoint_path)
+        except WeightsWriteError as error:
             kept = f"the checkpoint of iteration {self.saved_at} is kept" if self.saved_at is not None \
                 else "no checkpoint was kept"
             raise TrainingError(f"{error}; {kept}") from None
@@ -660,98 +645,4 @@ def _show_losses(bar: tqdm, losses: dict[str, float]) -> None:
                     ori=f"{losses['orientation']:.4f}", refresh=False)
     bar.update(1)
 
-
-def _provenance(path: Path, meta: dict) -> dict:
-    """What a fine-tuning run started from, kept in its checkpoint (the file at ``path`` may change or
-    move later): the file's SHA-256 and its training cost so far. A checkpoint as the start counts
-    what it had done."""
-    import hashlib
-
-    iterations = meta.get("total_iterations", meta.get("iterations", meta.get("iteration", 0)))
-    seconds = meta.get("total_train_seconds", meta.get("train_seconds", meta.get("elapsed_s", 0.0)))
-    return {"path": str(path), "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
-            "total_iterations": int(iterations or 0), "total_train_seconds": float(seconds or 0.0),
-            "train_config": meta.get("train_config"), "init": meta.get("init"), "runs": meta.get("runs")}
-
-
-def _runs(node: dict) -> dict[str, list]:
-    """Every training run behind a weights file (a ``_provenance`` node): [seconds, iterations] by the
-    SHA-256 of the file the run made. An averaged model lists its runs itself."""
-    if node.get("runs"):
-        return {sha: list(cost) for sha, cost in node["runs"].items()}
-    parent = node.get("init")
-    behind = _runs(parent) if parent else {}
-    own = [node["total_train_seconds"] - (parent["total_train_seconds"] if parent else 0.0),
-           node["total_iterations"] - (parent["total_iterations"] if parent else 0)]
-    return {**behind, node["sha256"]: own}
-
-
-def average_weights(paths: list[Path]) -> tuple[MushroomNet, dict]:
-    """The mean of the weights and batch-norm statistics of models fine-tuned from one start (a "model
-    soup", Wortsman et al. 2022): runs that share a start stay in one basin of the loss, where the mean
-    of their weights is a working model, often better than either, read at no extra cost (MODEL_CARD.md:
-    the ``long10k`` soup of two fine-tunes); runs from separate starts do not, so they are refused. The
-    mean's training cost is every run behind it, a shared one counted once."""
-    if len(paths) < 2:
-        raise ValueError("averaging needs two weights files or more")
-    loaded = [load_weights(Path(path)) for path in paths]
-    first = loaded[0][0]
-    for path, (model, _) in zip(paths[1:], loaded[1:]):
-        if model.config != first.config or model.point_spacing != first.point_spacing:
-            raise ValueError(f"{path} holds a different network than {paths[0]}; only models of one network average")
-        if model.inference_zoom != first.inference_zoom:
-            raise ValueError(f"{path} is read at zoom {model.inference_zoom}, {paths[0]} at {first.inference_zoom}")
-    nodes = [_provenance(Path(path), meta) for path, (_, meta) in zip(paths, loaded)]
-    runs = [_runs(node) for node in nodes]
-    if not set.intersection(*(set(behind) for behind in runs)):
-        raise ValueError(f"{' and '.join(map(str, paths))} were not trained from one start: the weights of "
-                         "separate runs do not average into a working model")
-    states = [model.state_dict() for model, _ in loaded]
-    stacked = {name: torch.stack([state[name] for state in states]) for name in states[0]}
-    # integer buffers are batch-norm step counts: the largest stands for the mean model's
-    mean = {name: values.mean(0) if values.is_floating_point() else values.amax(0) for name, values in stacked.items()}
-    model = MushroomNet(first.config, point_spacing=first.point_spacing, inference_zoom=first.inference_zoom)
-    model.load_state_dict(mean)
-    model.eval()
-    every_run = {sha: cost for behind in runs for sha, cost in behind.items()}
-    seconds, iterations = (sum(cost[i] for cost in every_run.values()) for i in (0, 1))
-    meta = {"averaged": nodes, "runs": every_run, "iterations": int(iterations), "train_seconds": float(seconds),
-            "total_iterations": int(iterations), "total_train_seconds": float(seconds)}
-    return model, meta
-
-
-UNRECORDED_ZOOM = 1.1
-"""The zoom weights and checkpoints without an ``inference_zoom`` entry are read at: the zoom such
-models are tuned for."""
-
-
-def save_weights(model: MushroomNet, path: Path, **meta) -> None:
-    """The shipped form of a model: its weights, its network config and how it was made."""
-    _atomic_save({**meta, "model": model.state_dict(), "network": model.config.to_dict(),
-                  "point_spacing": model.point_spacing, "inference_zoom": model.inference_zoom}, Path(path))
-
-
-def _scene_spacing(train_config: dict) -> float | None:
-    """The training beds' point spacing a saved TrainConfig gives (older run files name it ``voxel``)."""
-    scene = train_config.get("scene") or {}
-    return scene.get("spacing", scene.get("voxel"))
-
-
-def load_weights(path: Path, device: str = "cpu") -> tuple[MushroomNet, dict]:
-    """A trained network and its metadata from a weights file (model.pt) or a checkpoint."""
-    try:
-        state = torch.load(path, map_location=device, weights_only=False)
-        network = NetworkConfig.from_dict(state["network"])
-        spacing = state.get("point_spacing") or _scene_spacing(state.get("train_config") or {})
-        model = MushroomNet(network, point_spacing=spacing,
-                            inference_zoom=state.get("inference_zoom", UNRECORDED_ZOOM)).to(device)
-        model.load_state_dict(state["model"])
-    except FileNotFoundError:
-        raise
-    except Exception as error:
-        raise ValueError(f"{path} is not a mushroom-pose weights file ({type(error).__name__})") from None
-    if not _all_finite(model):
-        raise ValueError(f"{path} holds weights that are not finite numbers (a training run that diverged)")
-    model.eval()
-    return model, {k: v for k, v in state.items() if k not in ("model", "optimizer", "scheduler", "torch_rng")}
 

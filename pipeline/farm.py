@@ -69,7 +69,7 @@ def replay_session(job: FarmJob, session: str, index: int) -> SessionOutcome:
     """One session replayed into ``out_dir/<index>-<stem>/``; any failure becomes the row's one line."""
     import torch
 
-    from perception.train import load_weights
+    from perception.weights import load_weights
     from pipeline.replay import run_replay
 
     started = time.perf_counter()

@@ -125,8 +125,8 @@ def _caps_summary(documents: list[dict]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     from pipeline.check import compare
-    from perception.detect import DEFAULT_WEIGHTS
-    from perception.train import load_weights
+    from perception.weights import DEFAULT_WEIGHTS
+    from perception.weights import load_weights
 
     names = [r.name for r in RECORDINGS]
     parser = argparse.ArgumentParser(prog="python -m pipeline.recordings", description=__doc__.splitlines()[0])

@@ -27,7 +27,7 @@ def write_tiny_weights(path):
 
     from perception.model import MushroomNet
     from perception.synthetic.scene import SceneConfig
-    from perception.train import save_weights
+    from perception.weights import save_weights
 
     model = MushroomNet(tiny_network_config(), point_spacing=SceneConfig().spacing).eval()
     with torch.no_grad():

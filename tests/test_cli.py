@@ -189,9 +189,9 @@ def test_the_parser_restates_its_choices_as_the_libraries_define_them():
     from pipeline.commands.common import (CAMERAS, CLUSTERING, FILE_READINGS, MAX_READINGS, SHIPPED_ZOOM, SPACING_HELP,
                                           VISIBILITY)
     from perception import detect
-    from perception.detect import DEFAULT_WEIGHTS
+    from perception.weights import DEFAULT_WEIGHTS
     from perception.synthetic.scene import SceneConfig
-    from perception.train import load_weights
+    from perception.weights import load_weights
     from pipeline import sources
 
     assert (CLUSTERING, CAMERAS, VISIBILITY) == (METHODS, sources.CAMERAS, VISIBILITY_MODELS)

@@ -135,7 +135,7 @@ def test_detect_bad_input(tmp_path, weights, case, fragment):
     elif case == "diverged-model":
         import torch
 
-        from perception.train import load_weights, save_weights
+        from perception.weights import load_weights, save_weights
 
         network, meta = load_weights(weights)
         with torch.no_grad():
@@ -176,7 +176,7 @@ def test_the_model_file_is_not_an_output(tmp_path, weights, scene_ply):
     one_line_error(run("detect", ply, "--model", model, "--out", model), "also an input")
     one_line_error(run("eval", "--model", model, "--json", model, "--scenes", "1"), "also an input")
     assert model.read_bytes() == weights.read_bytes()
-    from perception.detect import DEFAULT_WEIGHTS
+    from perception.weights import DEFAULT_WEIGHTS
 
     shipped = DEFAULT_WEIGHTS.read_bytes()
     one_line_error(run("eval", "--json", DEFAULT_WEIGHTS, "--scenes", "1"), "also an input")

@@ -65,7 +65,8 @@ def test_zoom_is_the_same_network_on_the_scaled_cloud_with_answers_in_the_cloud_
 
 
 def test_a_model_thins_clouds_to_the_spacing_it_was_trained_at(tmp_path):
-    from perception.train import TrainConfig, load_weights, save_weights
+    from perception.train import TrainConfig
+    from perception.weights import load_weights, save_weights
 
     torch.manual_seed(0)
     points = generate_scene(3, SceneConfig(mushrooms=(5, 5), spacing=0.003)).points
@@ -82,7 +83,7 @@ def test_a_model_thins_clouds_to_the_spacing_it_was_trained_at(tmp_path):
 
 
 def test_a_model_is_read_at_the_zoom_its_weights_record_and_older_weights_at_1_1(tmp_path):
-    from perception.train import UNRECORDED_ZOOM, load_weights, save_weights
+    from perception.weights import UNRECORDED_ZOOM, load_weights, save_weights
 
     torch.manual_seed(0)
     points = generate_scene(3, SceneConfig(mushrooms=(5, 5))).points
@@ -104,7 +105,7 @@ def test_a_sparser_cloud_is_read_at_a_lower_zoom(tmp_path):
     from helpers import write_tiny_weights
     from perception.detect import reading_zoom
     from perception.synthetic.scene import SceneConfig, generate_scene
-    from perception.train import load_weights
+    from perception.weights import load_weights
 
     model, _ = load_weights(write_tiny_weights(tmp_path / "tiny.pt"))
     model.inference_zoom = 1.2

@@ -24,8 +24,8 @@ ROOT = Path(__file__).resolve().parent.parent
 
 @pytest.fixture(scope="module")
 def model():
-    from perception.detect import DEFAULT_WEIGHTS
-    from perception.train import load_weights
+    from perception.weights import DEFAULT_WEIGHTS
+    from perception.weights import load_weights
 
     return load_weights(DEFAULT_WEIGHTS)[0]
 

@@ -11,8 +11,8 @@ from pipeline.perception_process import PerceptionProcess, PerceptionProcessErro
 
 @pytest.fixture(scope="module")
 def model():
-    from perception.detect import DEFAULT_WEIGHTS
-    from perception.train import load_weights
+    from perception.weights import DEFAULT_WEIGHTS
+    from perception.weights import load_weights
 
     return load_weights(DEFAULT_WEIGHTS)[0]
 

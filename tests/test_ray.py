@@ -21,7 +21,7 @@ def local_ray():
 
 def test_replaying_three_sessions_on_ray_matches_the_local_run_and_a_corrupt_one_is_one_failed_row(
         tmp_path, local_ray):
-    from perception.detect import DEFAULT_WEIGHTS
+    from perception.weights import DEFAULT_WEIGHTS
     from pipeline.check import Tolerances
     from pipeline.farm import FarmJob, replay_sessions
     from pipeline.replay import ReplayOptions
@@ -59,9 +59,11 @@ def test_beds_generated_on_ray_are_the_local_beds(local_ray):
 def test_evaluation_on_ray_gives_the_local_metrics(local_ray):
     import torch
 
-    from perception.detect import DEFAULT_WEIGHTS, evaluate_on_scenes
+    from perception.evaluate import evaluate_on_scenes
+
+    from perception.weights import DEFAULT_WEIGHTS
     from perception.synthetic.dataset import load_preset
-    from perception.train import load_weights
+    from perception.weights import load_weights
 
     model, _ = load_weights(DEFAULT_WEIGHTS)
     scenes = load_preset("val50", progress=False, limit=3)
@@ -81,7 +83,8 @@ def test_a_run_trained_on_beds_made_by_ray_tasks_is_the_local_run(tmp_path, loca
 
     from perception.model import NETWORK_PRESETS, NetworkConfig
     from perception.synthetic.scene import SceneConfig
-    from perception.train import TrainConfig, load_weights, train
+    from perception.train import TrainConfig, train
+    from perception.weights import load_weights
 
     monkeypatch.setitem(NETWORK_PRESETS, "tiny", NetworkConfig(channels=(8, 8, 8, 8), up_channels=(8, 8, 8, 8),
                                                       first_kernel=3, head_hidden=(8, 8)))

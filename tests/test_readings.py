@@ -95,8 +95,8 @@ def chain_readings(monkeypatch):
 
 
 def test_replay_reads_as_often_as_the_session_was_read_unless_told(tmp_path, chain_readings):
-    from perception.detect import DEFAULT_WEIGHTS
-    from perception.train import load_weights
+    from perception.weights import DEFAULT_WEIGHTS
+    from perception.weights import load_weights
     from pipeline.recordings import RECORDINGS_DIR
     from pipeline.replay import ReplayError, ReplayOptions, run_replay
 
@@ -130,8 +130,8 @@ def test_detect_on_a_raw_session_hands_its_readings_to_the_chain(tmp_path, chain
 
 def test_the_runner_reads_as_many_times_as_its_perception_stage_says():
     from capture.source import Source
-    from perception.detect import DEFAULT_WEIGHTS
-    from perception.train import load_weights
+    from perception.weights import DEFAULT_WEIGHTS
+    from perception.weights import load_weights
     from pipeline.runner import PerceptionStage, RunConfig, Runner
     from pipeline.sources import VirtualBed, virtual_bed_source
 

@@ -9,8 +9,9 @@ import torch
 from perception.model import INFERENCE_ZOOM, LENGTH_UNIT, NETWORK_PRESETS, MushroomNet, NetworkConfig
 from perception.sparse import SparseTensor
 from perception.synthetic.scene import SceneConfig
-from perception.train import (UNRECORDED_ZOOM, TrainConfig, TrainingError, augmented_sample, iteration_seed,
-                              load_weights, loss_terms, scene_config, train, voxel_targets)
+from perception.train import (TrainConfig, TrainingError, augmented_sample, iteration_seed, loss_terms, scene_config,
+                              train, voxel_targets)
+from perception.weights import UNRECORDED_ZOOM, load_weights
 
 TINY = NetworkConfig(channels=(8, 8, 8, 8), up_channels=(8, 8, 8, 8), first_kernel=3, head_hidden=(8, 8))
 SMALL_SCENES = SceneConfig(mushrooms=(3, 5))
@@ -421,7 +422,7 @@ def test_weight_averaging_ships_the_mean_of_the_last_steps_and_resumes_exactly(t
 
 def test_averaging_runs_from_one_start_gives_their_mean_and_counts_the_start_once(tmp_path, tiny_network, capsys):
     from pipeline.cli import main
-    from perception.train import average_weights
+    from perception.weights import average_weights
 
     base_config = TrainConfig(iterations=2, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
     base = train(base_config, tmp_path / "base", progress=False, rerun=False)

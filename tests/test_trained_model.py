@@ -1,9 +1,11 @@
 """The shipped model on held-out synthetic beds: the first 5 beds of val50 (75 caps), made once and
 cached (perception.synthetic.dataset.load_preset), both clustering methods: 2-3 s on one torch thread."""
 
-from perception.detect import DEFAULT_WEIGHTS, evaluate_on_scenes
+from perception.evaluate import evaluate_on_scenes
+
+from perception.weights import DEFAULT_WEIGHTS
 from perception.synthetic.dataset import load_preset
-from perception.train import load_weights
+from perception.weights import load_weights
 
 FLOORS = {
     # Measured, read once (the library's default), over val50 beds 0-4 (these) and, for the spread, 5-9:

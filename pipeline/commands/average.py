@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from pipeline.commands.common import (CliError, add_overwrite_flag, refuse_to_replace, writable_file)
+from pipeline.commands.common import CliError, CommandFailed, add_overwrite_flag, refuse_to_replace, writable_file
 
 NAME = "average"
 HELP = "average the weights of models fine-tuned from one start (a model soup)"
@@ -18,7 +18,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from perception.train import average_weights, save_weights
+    from perception.weights import WeightsWriteError, average_weights, save_weights
 
     for path in args.weights:
         if not Path(path).is_file():
@@ -29,7 +29,10 @@ def run(args: argparse.Namespace) -> int:
         model, meta = average_weights([Path(path) for path in args.weights])
     except ValueError as error:
         raise CliError(str(error)) from None
-    save_weights(model, out, **meta)
+    try:
+        save_weights(model, out, **meta)
+    except WeightsWriteError as error:
+        raise CommandFailed(f"{error}; no weights were written") from None
     print(f"averaged {len(args.weights)} models, {len(meta['runs'])} training runs behind them, "
           f"{meta['total_iterations']} iterations in {meta['total_train_seconds'] / 60:.1f} min: {out}")
     return 0

@@ -201,14 +201,14 @@ def torch_threads(threads: int | None) -> None:
 
 def model_path(path: str | None) -> Path:
     """The weights file ``--model`` names, or the shipped one."""
-    from perception.detect import DEFAULT_WEIGHTS
+    from perception.weights import DEFAULT_WEIGHTS
 
     return Path(path) if path else DEFAULT_WEIGHTS
 
 
 def load_model(path: str | None):
     """The model and metadata of the weights ``--model`` names (default: the shipped model)."""
-    from perception.train import load_weights
+    from perception.weights import load_weights
 
     weights = model_path(path)
     if not weights.exists():

@@ -74,7 +74,7 @@ def eval_table(name: str, results: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from perception.detect import evaluate_on_scenes
+    from perception.evaluate import evaluate_on_scenes
     from perception.synthetic.dataset import load_preset, preset_config
 
     if args.table and args.readings is not None:

@@ -127,6 +127,7 @@ def _check(args: argparse.Namespace) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from perception.train import TrainingError, train
+    from perception.weights import WeightsWriteError
 
     _check(args)
     try:
@@ -144,10 +145,10 @@ def run(args: argparse.Namespace) -> int:
     try:
         weights = train(config, run_dir, resume=args.resume, device=args.device, progress=not args.quiet,
                         max_minutes=args.max_minutes, ray_address=args.ray)
-    except (ValueError, TrainingError) as error:
+    except (ValueError, TrainingError, WeightsWriteError) as error:
         if new_folder and not any(run_dir.iterdir()):
             run_dir.rmdir()
-        raise (CommandFailed if isinstance(error, TrainingError) else CliError)(str(error)) from None
+        raise (CliError if isinstance(error, ValueError) else CommandFailed)(str(error)) from None
     if weights is None:
         print(f"stopped after {args.max_minutes} minutes with a checkpoint in {run_dir}: continue with the same "
               "flags and --resume")
