@@ -68,6 +68,22 @@ class Turntable:
         return self.rotation(angle) @ self.T_world_reference
 
 
+def median_neighbour_distance(points: np.ndarray, queries: int = 4000, sample: int | None = None) -> float:
+    """Median distance from a point to its nearest neighbour, over ``queries`` random points (seeded,
+    so a cloud always gives the same figure); nan for fewer than two points. A cloud of more than
+    ``sample`` points is measured on a random sample of them and scaled back (on a surface, spacing
+    goes as one over the square root of density)."""
+    from scipy.spatial import cKDTree
+
+    if len(points) < 2:
+        return float("nan")
+    rng = np.random.default_rng(0)
+    kept = points if sample is None or len(points) <= sample else points[rng.choice(len(points), sample, replace=False)]
+    asked = kept[rng.choice(len(kept), min(queries, len(kept)), replace=False)]
+    distances = cKDTree(kept).query(asked, k=2)[0][:, 1]
+    return float(np.median(distances)) * float(np.sqrt(len(kept) / len(points)))
+
+
 def voxel_representatives(points: np.ndarray, voxel: float) -> np.ndarray:
     """Indices of one point per occupied voxel (the first one met), in ascending order.
 

@@ -1,6 +1,9 @@
-"""The bed frame: z up along the bed's normal, origin on the bed plane (DESIGN.md section 3)."""
+"""The bed frame: z up along the bed's normal, origin on the bed plane (DESIGN.md section 3); which side
+of the plane is up; and whether a cloud is a bed seen from above at all."""
 
 from __future__ import annotations
+
+from typing import Callable
 
 import numpy as np
 import open3d as o3d
@@ -8,6 +11,9 @@ import open3d as o3d
 
 CAMERA_RANGE = 3.0
 """Metres. A depth camera looking at a bed is closer than this."""
+RANSAC_POINTS = 20_000
+"""RANSAC's start for the bed plane is found on about this many points (every k-th): it only has to
+land near the soil's plane, which the Tukey refinement then settles on all of them."""
 
 
 def estimate_bed_frame(points: np.ndarray, distance: float = 0.008, seed: int = 0,
@@ -17,9 +23,10 @@ def estimate_bed_frame(points: np.ndarray, distance: float = 0.008, seed: int = 
     within ``distance``) refined by Tukey-weighted least squares of scale ``robust_scale`` (metres).
 
     z points to the side the bed was seen from, decided by the cloud itself (``up_side``), not by where
-    the input frame's origin happens to lie. The origin is the centroid's projection onto the plane; x follows the input's x projected onto
+    the input frame's origin happens to lie; a detector's caps can overrule it (``side_with_caps``). The origin is the centroid's projection onto the plane; x follows the input's x projected onto
     the plane. With ``fit_points``, the plane is fitted to about that many of the points (every k-th):
-    a plane needs no more; the centroid is still that of all of them.
+    a plane needs no more; the centroid is still that of all of them. RANSAC only starts the fit, on
+    at most ``RANSAC_POINTS`` of them: the refinement ends on the same plane from any start near it.
     """
     if len(points) < 3:
         raise ValueError("too few points to find the bed plane")
@@ -30,8 +37,9 @@ def estimate_bed_frame(points: np.ndarray, distance: float = 0.008, seed: int = 
     centroid = points.mean(0)
     if fit_points is not None and len(points) > fit_points:
         points = points[::len(points) // fit_points]
+    start = points[::len(points) // RANSAC_POINTS] if len(points) > RANSAC_POINTS else points
     o3d.utility.random.seed(seed)
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(start))
     (a, b, c, d), _ = cloud.segment_plane(distance, 3, 200)
     normal, offset = _robust_plane(points, np.array([a, b, c]) / np.linalg.norm([a, b, c]),
                                    d / np.linalg.norm([a, b, c]), robust_scale)
@@ -45,6 +53,25 @@ def estimate_bed_frame(points: np.ndarray, distance: float = 0.008, seed: int = 
     T[:3, :3] = np.stack([x, np.cross(up, x), up], 1)
     T[:3, 3] = origin
     return T
+
+
+TURN_EVIDENCE = 4.0
+"""How many times more cap evidence the bed turned over must show before it is turned: caps seen from
+their right side fill thousands of voxels, seen from the wrong side almost none."""
+
+
+def turned_over(T_input_bed: np.ndarray) -> np.ndarray:
+    """The bed frame turned 180 degrees about its x axis: the same plane, seen from its other side."""
+    return T_input_bed @ np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def side_with_caps(T_input_bed: np.ndarray, cap_evidence: Callable[[np.ndarray], int]) -> np.ndarray:
+    """``T_input_bed``, or the frame turned over when ``cap_evidence`` (how many cap voxels a detector
+    sees in the cloud put in a given bed frame) finds far more caps that way. A bed's caps tell the
+    plane's two sides apart where its soil relief or the input's origin (``up_side``) can mislead:
+    cloddy soil goes as deep below the plane as caps stand above it."""
+    turned = turned_over(T_input_bed)
+    return turned if cap_evidence(turned) > TURN_EVIDENCE * max(cap_evidence(T_input_bed), 10) else T_input_bed
 
 
 def up_side(normal: np.ndarray, heights: np.ndarray, distance: float, normals: np.ndarray | None,
@@ -87,19 +114,72 @@ def _robust_plane(points: np.ndarray, normal: np.ndarray, offset: float, scale: 
     0.04 off from one run to the next on the same points, and a replay must fuse a session's clouds as
     the run did.
     """
+    # weighted moments about one fixed point, in one pass over the points per step
+    reference = points.mean(0)
+    centred = points - reference
+    offset += float(normal @ reference)
     for _ in range(max_iterations):
-        residual = points @ normal + offset
+        residual = centred @ normal + offset
         weight = np.clip(1.0 - (residual / scale) ** 2, 0.0, None) ** 2
-        if weight.sum() <= 0:
+        total = weight.sum()
+        if total <= 0:
             break
-        centroid = weight @ points / weight.sum()
-        centred = (points - centroid) * np.sqrt(weight)[:, None]
-        fitted = np.linalg.eigh(centred.T @ centred)[1][:, 0]
+        mean = weight @ centred / total
+        scatter = (centred.T * weight) @ centred - total * np.outer(mean, mean)
+        fitted = np.linalg.eigh(scatter)[1][:, 0]
         fitted = fitted if fitted @ normal >= 0 else -fitted
-        moved = max(float(np.abs(fitted - normal).max()), abs(offset + float(fitted @ centroid)))
-        normal, offset = fitted, -float(fitted @ centroid)
+        moved = max(float(np.abs(fitted - normal).max()), abs(offset + float(fitted @ mean)))
+        normal, offset = fitted, -float(fitted @ mean)
         if moved < settled:
             break
+    offset -= float(normal @ reference)
     # what is left of where it started (about 1e-13) is rounded away: a nanometre means nothing on a bed
     normal = np.round(normal, 9)
     return normal / np.linalg.norm(normal), round(offset, 9)
+
+
+# ---- is it a bed seen from above?
+
+NEAR_PLANE = 0.10
+"""Metres from the bed plane within which a bed's soil and caps lie (caps stand a few cm tall)."""
+MIN_NEAR_PLANE = 0.5
+"""The least fraction of a bed cloud's points within ``NEAR_PLANE`` of its dominant plane."""
+MAX_CAPS_PER_M2 = 1000.0
+"""More caps per square metre than the densest bed holds (touching 30 mm caps give about 1100 on a
+hexagonal packing, and beds are never packed that tight)."""
+BED_FRAME_TILT_DEG = 20.0
+"""How far the dominant plane of a cloud said to be in the bed frame may tilt from z = 0."""
+BED_FRAME_OFFSET = 0.10
+"""How far (metres) that plane may lie from the frame's origin."""
+
+
+def not_a_bed(bed_points: np.ndarray) -> str | None:
+    """Why a cloud in its bed frame is no bed seen from above (most of its points far from its
+    dominant plane), or None when it may be one."""
+    near = float(np.mean(np.abs(bed_points[:, 2]) <= NEAR_PLANE))
+    if near < MIN_NEAR_PLANE:
+        return (f"only {near:.0%} of its points lie within {100 * NEAR_PLANE:.0f} cm of its dominant plane, where a "
+                "bed has most of them")
+    return None
+
+
+def too_many_caps(bed_points: np.ndarray, caps: int) -> str | None:
+    """Why ``caps`` caps on this cloud (in its bed frame) are more than a bed holds, or None."""
+    near = bed_points[np.abs(bed_points[:, 2]) <= NEAR_PLANE]
+    if len(near) < 3 or caps == 0:
+        return None
+    area = float(np.prod(np.ptp(np.percentile(near[:, :2], [1, 99], axis=0), axis=0)))
+    if caps > MAX_CAPS_PER_M2 * max(area, 1e-6):
+        return f"{caps} caps on {area:.2g} m2 are more than a bed holds (at most {MAX_CAPS_PER_M2:.0f} per m2)"
+    return None
+
+
+def bed_frame_mismatch(T_input_bed: np.ndarray) -> str | None:
+    """Why a cloud whose own bed plane is ``T_input_bed`` is not in the bed frame, or None."""
+    tilt = float(np.degrees(np.arccos(np.clip(abs(T_input_bed[2, 2]), -1.0, 1.0))))
+    height = abs(float(T_input_bed[2, 3]))
+    if tilt > BED_FRAME_TILT_DEG:
+        return f"its bed plane is tilted {tilt:.0f} deg from the frame's xy plane"
+    if height > BED_FRAME_OFFSET:
+        return f"its bed plane lies {100 * height:.0f} cm from the frame's origin"
+    return None

@@ -8,7 +8,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from common.geometry import cell_lookup, transform_points, turning_about_z, voxel_representatives
+from common.geometry import (cell_lookup, median_neighbour_distance, transform_points, turning_about_z,
+                             voxel_representatives)
 from perception.cap import Caps
 from perception.instances import ClusterConfig, cluster
 from perception.model import LENGTH_UNIT, MushroomNet, inference_model, voxel_features
@@ -100,10 +101,7 @@ def point_spacing(points: np.ndarray, samples: int = 5000) -> float:
     nearest-neighbour distance over ``NEIGHBOUR_PER_SPACING``; nan for fewer than 100 points."""
     if len(points) < 100:
         return float("nan")
-    from scipy.spatial import cKDTree
-
-    queries = points[np.random.default_rng(0).choice(len(points), min(samples, len(points)), replace=False)]
-    return float(np.median(cKDTree(points).query(queries, k=2)[0][:, 1])) / NEIGHBOUR_PER_SPACING
+    return median_neighbour_distance(points, queries=samples) / NEIGHBOUR_PER_SPACING
 
 
 def reading_zoom(model: MushroomNet, points: np.ndarray) -> float:

@@ -19,9 +19,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import sklearn
-from sklearn.cluster import DBSCAN, MeanShift, get_bin_seeds
-from sklearn.neighbors import KDTree
 
 from common.geometry import cell_lookup
 
@@ -79,6 +76,8 @@ def cluster(points: np.ndarray, collapsed: np.ndarray, existence: np.ndarray, vo
         found = _mean_shift(collapsed[candidates], config.bandwidth_voxels * voxel, config.min_points,
                             config.seeding)
     else:
+        from sklearn.cluster import DBSCAN
+
         found = DBSCAN(eps=config.eps_voxels * voxel, min_samples=3).fit_predict(points[candidates])
     counts = np.bincount(found[found >= 0]) if (found >= 0).any() else np.zeros(0, np.int64)
     kept = np.flatnonzero(counts >= config.min_points)
@@ -92,6 +91,9 @@ def cluster(points: np.ndarray, collapsed: np.ndarray, existence: np.ndarray, vo
 def _mean_shift(collapsed: np.ndarray, bandwidth: float, min_points: int, seeding: str) -> np.ndarray:
     """scikit-learn MeanShift labels (-1: no cluster) of finite collapsed points; seeds are bins
     holding min_points / 2 points, sent up their hill together first (``_climb``)."""
+    import sklearn
+    from sklearn.cluster import MeanShift, get_bin_seeds
+    from sklearn.neighbors import KDTree
 
     def fit(points: np.ndarray, seeds: np.ndarray) -> MeanShift:
         # our inputs are finite: skipping scikit-learn's per-call checks makes MeanShift ~20 % faster
@@ -137,7 +139,7 @@ def peak_seeds(points: np.ndarray, bin_size: float, min_bin_freq: int = 1) -> np
     return bins[counts >= neighbour_counts.max(1)] * bin_size
 
 
-def _climb(tree: KDTree, points: np.ndarray, seeds: np.ndarray, bandwidth: float, max_steps: int) -> np.ndarray:
+def _climb(tree, points: np.ndarray, seeds: np.ndarray, bandwidth: float, max_steps: int) -> np.ndarray:
     """The distinct ``seeds`` after MeanShift's own iteration (each moves to the mean of the points
     within ``bandwidth``), all at once, one neighbour query per step: a seed stops where its next step
     would be within scikit-learn's stopping distance (1e-3 bandwidths), so that scikit-learn takes

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from common.geometry import median_neighbour_distance
+
 CLOUD_SUFFIXES = (".ply", ".pcd", ".npz", ".mcap")
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}
 """Metres per unit of the units a cloud may come in."""
@@ -95,7 +97,7 @@ def _load_cloud(path: Path, units: str) -> LoadedCloud:
     _refuse_nonfinite(path, points)
     if len(points) == 0:
         raise ValueError(f"{path}: the cloud is empty")
-    spacing, extent = nearest_spacing(points), float(np.max(np.ptp(np.percentile(points, [5, 95], axis=0), axis=0)))
+    spacing, extent = median_neighbour_distance(points, sample=200_000), float(np.max(np.ptp(np.percentile(points, [5, 95], axis=0), axis=0)))
     doubt = None
     if units == "auto":
         units = "m" if in_bed else infer_units(spacing, extent)
@@ -105,21 +107,6 @@ def _load_cloud(path: Path, units: str) -> LoadedCloud:
     elif units not in UNITS:
         raise ValueError(f"unknown units {units!r}; choose one of auto, {', '.join(UNITS)}")
     return LoadedCloud(points * UNITS[units], in_bed, units, spacing, extent, doubt)
-
-
-def nearest_spacing(points: np.ndarray, queries: int = 4000, sample: int = 200_000) -> float:
-    """Median distance from a point to its nearest neighbour. A cloud of more than ``sample`` points is
-    measured on a random sample of them and scaled back (on a surface, spacing goes as one over the
-    square root of density)."""
-    from scipy.spatial import cKDTree
-
-    if len(points) < 2:
-        return float("nan")
-    rng = np.random.default_rng(0)
-    kept = points if len(points) <= sample else points[rng.choice(len(points), sample, replace=False)]
-    asked = kept[rng.choice(len(kept), min(queries, len(kept)), replace=False)]
-    distances = cKDTree(kept).query(asked, k=2)[0][:, 1]
-    return float(np.median(distances)) * np.sqrt(len(kept) / len(points))
 
 
 def infer_units(spacing: float, extent: float) -> str | None:
@@ -234,48 +221,3 @@ def _refuse_nonfinite(path: Path, rows: np.ndarray) -> None:
     if bad:
         raise ValueError(f"{path}: {bad} of {len(rows)} points are NaN or infinite; "
                          "remove them (invalid depth) and try again")
-
-
-NEAR_PLANE = 0.10
-"""Metres from the bed plane within which a bed's soil and caps lie (caps stand a few cm tall)."""
-MIN_NEAR_PLANE = 0.5
-"""The least fraction of a bed cloud's points within ``NEAR_PLANE`` of its dominant plane."""
-MAX_CAPS_PER_M2 = 1000.0
-"""More caps per square metre than the densest bed holds (touching 30 mm caps give about 1100 on a
-hexagonal packing, and beds are never packed that tight)."""
-BED_FRAME_TILT_DEG = 20.0
-"""How far the dominant plane of a cloud said to be in the bed frame may tilt from z = 0."""
-BED_FRAME_OFFSET = 0.10
-"""How far (metres) that plane may lie from the frame's origin."""
-
-
-def not_a_bed(bed_points: np.ndarray) -> str | None:
-    """Why a cloud in its bed frame is no bed seen from above (most of its points far from its
-    dominant plane), or None when it may be one."""
-    near = float(np.mean(np.abs(bed_points[:, 2]) <= NEAR_PLANE))
-    if near < MIN_NEAR_PLANE:
-        return (f"only {near:.0%} of its points lie within {100 * NEAR_PLANE:.0f} cm of its dominant plane, where a "
-                "bed has most of them")
-    return None
-
-
-def too_many_caps(bed_points: np.ndarray, caps: int) -> str | None:
-    """Why ``caps`` caps on this cloud (in its bed frame) are more than a bed holds, or None."""
-    near = bed_points[np.abs(bed_points[:, 2]) <= NEAR_PLANE]
-    if len(near) < 3 or caps == 0:
-        return None
-    area = float(np.prod(np.ptp(np.percentile(near[:, :2], [1, 99], axis=0), axis=0)))
-    if caps > MAX_CAPS_PER_M2 * max(area, 1e-6):
-        return f"{caps} caps on {area:.2g} m2 are more than a bed holds (at most {MAX_CAPS_PER_M2:.0f} per m2)"
-    return None
-
-
-def bed_frame_mismatch(T_input_bed: np.ndarray) -> str | None:
-    """Why a cloud whose own bed plane is ``T_input_bed`` is not in the bed frame, or None."""
-    tilt = float(np.degrees(np.arccos(np.clip(abs(T_input_bed[2, 2]), -1.0, 1.0))))
-    height = abs(float(T_input_bed[2, 3]))
-    if tilt > BED_FRAME_TILT_DEG:
-        return f"its bed plane is tilted {tilt:.0f} deg from the frame's xy plane"
-    if height > BED_FRAME_OFFSET:
-        return f"its bed plane lies {100 * height:.0f} cm from the frame's origin"
-    return None

@@ -44,16 +44,16 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from common.geometry import transform_points
-    from perception.detect import detect_points, log_rerun, transform_result
+    from fusion.bed import not_a_bed, side_with_caps, too_many_caps
+    from perception.detect import detect_points, transform_result
     from perception.instances import ClusterConfig
-    from pipeline.clouds import load_cloud, not_a_bed, too_many_caps
-    from pipeline.rerun_sink import rerun_stream
+    from pipeline.clouds import load_cloud
 
-    if Path(args.cloud).suffix.lower() == ".mcap" and _is_raw_session(Path(args.cloud)):
-        return _detect_session(args)
     try:
         cloud = load_cloud(Path(args.cloud), args.units)
     except ValueError as error:
+        if Path(args.cloud).suffix.lower() == ".mcap" and _is_raw_session(Path(args.cloud)):
+            return _detect_session(args)
         raise CliError(str(error)) from None
     out = writable_file(args.out, inputs=(args.cloud, model_path(args.model)))
     rrd = writable_file(args.rrd, inputs=(args.cloud, model_path(args.model)))
@@ -69,15 +69,13 @@ def run(args: argparse.Namespace) -> int:
     bed_points = transform_points(np.linalg.inv(T_input_bed), points)
     _refuse_unless_forced(args, not_a_bed(bed_points))
     refuse_to_replace([out, rrd], args.overwrite)
+    if frame == "input":  # the bed plane was found here: which side is up, its caps say
+        T_turned = side_with_caps(T_input_bed, _cap_voxels(model, points, args.zoom))
+        if T_turned is not T_input_bed:
+            T_input_bed, bed_points = T_turned, transform_points(np.linalg.inv(T_turned), points)
     try:
         result = detect_points(model, bed_points, ClusterConfig(method=args.clustering), zoom=args.zoom,
                                readings=args.readings)
-        if frame == "input":  # the bed plane was found here: which side is up, the caps say
-            T_turned = _turned_by_caps(model, points, T_input_bed, result, args.zoom, args.readings)
-            if T_turned is not None:
-                T_input_bed, bed_points = T_turned, transform_points(np.linalg.inv(T_turned), points)
-                result = detect_points(model, bed_points, ClusterConfig(method=args.clustering), zoom=args.zoom,
-                                       readings=args.readings)
     except ValueError as error:
         raise CliError(str(error)) from None
     _refuse_unless_forced(args, too_many_caps(bed_points, len(result.caps)))
@@ -87,33 +85,31 @@ def run(args: argparse.Namespace) -> int:
     _warn_outside_range(model, bed_points, result, args.cloud)
     payload = {**result.caps.to_document(frame, args.readings), "T_input_bed": T_input_bed.tolist()}
     replace_file(out, json.dumps(payload, indent=1))
-    with rerun_stream(rrd) as rec:
-        if rec is not None:
+    if rrd is not None:
+        from perception.detect import log_rerun
+        from pipeline.rerun_sink import rerun_stream
+
+        with rerun_stream(rrd) as rec:
             log_rerun(rec, result, points)
     print(f"detections: {out}" + (f"  rerun: {rrd}" if rrd else ""))
     return 0
 
 
 UNIT_NAMES = {"m": "metres", "cm": "centimetres", "mm": "millimetres"}
-TURN_EVIDENCE = 4.0
-"""How many times more cap voxels the bed turned over must show before detect turns it: caps seen from
-their right side fill thousands of voxels, seen from the wrong side almost none."""
 
 
-def _turned_by_caps(model, points, T_input_bed, result, zoom, readings):
-    """The bed frame turned over (180 degrees about its x axis) when the network sees far more caps that
-    way: the plane's two sides are told apart by the cloud's caps, not by its soil relief or where the
-    input's origin lies, which can mislead ``fusion.bed.up_side``. None when the frame stands."""
+def _cap_voxels(model, points, zoom):
+    """How many cap voxels the network sees in ``points`` put in a given bed frame, read once: the
+    evidence by which ``fusion.bed`` tells the bed's up side from its underside."""
     import numpy as np
 
     from common.geometry import transform_points
     from perception.detect import predict
 
-    T_turned = T_input_bed @ np.diag([1.0, -1.0, -1.0, 1.0])
-    seen = int((result.voxels.existence > 0.5).sum())
-    turned_points = transform_points(np.linalg.inv(T_turned), points)
-    turned = int((predict(model, turned_points, zoom=zoom, readings=readings).existence > 0.5).sum())
-    return T_turned if turned > TURN_EVIDENCE * max(seen, 10) else None
+    def seen(T_input_bed: np.ndarray) -> int:
+        bed_points = transform_points(np.linalg.inv(T_input_bed), points)
+        return int((predict(model, bed_points, zoom=zoom, readings=1).existence > 0.5).sum())
+    return seen
 
 
 def _bed_frame(args: argparse.Namespace, cloud):
@@ -122,8 +118,7 @@ def _bed_frame(args: argparse.Namespace, cloud):
     input's, with the bed plane found in it."""
     import numpy as np
 
-    from fusion.bed import estimate_bed_frame
-    from pipeline.clouds import bed_frame_mismatch
+    from fusion.bed import bed_frame_mismatch, estimate_bed_frame
 
     if cloud.in_bed_frame:
         return np.eye(4), "bed"
@@ -149,15 +144,10 @@ def _refuse_unless_forced(args: argparse.Namespace, reason: str | None) -> None:
 
 
 def _is_raw_session(path: Path) -> bool:
-    """A recording of depth frames with no fused cloud: ``detect`` fuses it first."""
-    from capture.mcap_io import McapSource, read_point_cloud
+    """A recording of depth frames (its fused cloud, if any, could not be read): ``detect`` fuses it first."""
+    from capture.mcap_io import McapSource
     from capture.source import SourceError
 
-    try:
-        read_point_cloud(path)
-        return False
-    except SourceError:
-        pass
     try:
         with McapSource(path) as session:
             return bool(session.sensor_ids)
