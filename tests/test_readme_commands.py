@@ -19,10 +19,9 @@ def command_rows() -> list[tuple[str, list[str]]]:
 
 def command_parsers() -> dict[str, argparse.ArgumentParser]:
     from pipeline.cli import build_parser
+    from pipeline.cli_reference import subcommands
 
-    subparsers = next(action for action in build_parser()._actions
-                      if isinstance(action, argparse._SubParsersAction))
-    return dict(subparsers.choices)
+    return subcommands(build_parser())
 
 
 def test_every_flag_in_the_commands_table_exists():

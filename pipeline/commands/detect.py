@@ -16,11 +16,14 @@ HELP = ("find caps in a point cloud (.ply, .pcd, .npz) or a session .mcap (its f
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("cloud", help="the point cloud file")
+    parser.add_argument("cloud", help="the point cloud: a .ply, .pcd or scene .npz, or a session .mcap: its last "
+                        "/fusion/cloud, or for a session of raw frames its frames fused as replay fuses them (the "
+                        "last unit's caps, in the world frame)")
     parser.add_argument("--out", default="detections.json", help="detections JSON (default detections.json)")
     parser.add_argument("--rrd", help="also write a Rerun recording of the result")
     parser.add_argument("--model", help="weights file (default: the shipped model)")
-    parser.add_argument("--clustering", choices=CLUSTERING, default="meanshift")
+    parser.add_argument("--clustering", choices=CLUSTERING, default="meanshift",
+                        help="how the network's cap-centre votes are grouped into caps")
     parser.add_argument("--zoom", type=parse_zoom, help="scale the network reads the cloud at (default: the one "
                         f"the weights record, {SHIPPED_ZOOM} for the shipped model, lowered for clouds sparser than "
                         "its training beds)")
@@ -35,7 +38,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the cloud is already in the bed frame (z up, origin on the bed plane; checked)")
     add_overwrite_flag(parser)
     parser.add_argument("--force", action="store_true",
-                        help="detect on a cloud that does not look like a bed, or whose --bed-frame does not fit it")
+                        help="detect on a cloud that does not look like a bed (most points off its plane, no unit "
+                             "in which it is one, more caps than a bed holds), or whose --bed-frame does not fit it")
 
 
 def run(args: argparse.Namespace) -> int:

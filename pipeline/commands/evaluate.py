@@ -19,10 +19,13 @@ HELP = "the paper's metrics on val50/test50, beside the paper's numbers"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--set", nargs="+", choices=["val50", "test50"], default=["val50", "test50"])
+    parser.add_argument("--set", nargs="+", choices=["val50", "test50"], default=["val50", "test50"],
+                        help="the evaluation sets to score (50 beds each, as synth --preset makes them)")
     parser.add_argument("--model", help="weights file (default: the shipped model)")
-    parser.add_argument("--json", help="also write the figures (fractions) to this JSON file")
-    parser.add_argument("--visibility", choices=VISIBILITY, default="hpr")
+    parser.add_argument("--json", help="also write the figures (fractions) to this JSON file; an undefined "
+                        "figure is null")
+    parser.add_argument("--visibility", choices=VISIBILITY, default="hpr",
+                        help="how the sets' beds become points (as synth --visibility)")
     parser.add_argument("--height", choices=["free", "fixed"], default="free",
                         help="cap height: fitted (default) or the paper's fixed s_z = 2 s / 3")
     parser.add_argument("--axis", choices=["surface", "encoding"], default="surface",
@@ -47,7 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "3 DBSCAN vs MeanShift, 4 scale and angle errors with ICP refinement")
     parser.add_argument("--encodings", help="--table 2: the folder of the three encodings' training runs "
                         "(python bench/encodings.py --out DIR makes them)")
-    parser.add_argument("--quiet", action="store_true")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
     add_overwrite_flag(parser)
     add_ray_flag(parser, "read the beds as Ray tasks (the same figures as here)")
 

@@ -27,7 +27,9 @@ BED_FLAGS = {"seed": {"parse": parse_seed}, "views": {"parse": positive(int)}}
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from pipeline.flags import add_config_flags  # loads ast: only a parsed live pays it
 
-    parser.add_argument("--camera", choices=CAMERAS, required=True)
+    parser.add_argument("--camera", choices=CAMERAS, required=True,
+                        help="the depth camera; virtual renders a synthetic bed on a turntable, in real time at "
+                             "15 fps")
     parser.add_argument("--serial", help="which camera (serial number or OAK MxId) when several are attached")
     parser.add_argument("--playback", help="RealSense: play this recorded device file (.db3) through the driver")
     parser.add_argument("--rig", help="rig file from mushroom-pose calibrate (turntable or several cameras)")

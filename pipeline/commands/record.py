@@ -13,7 +13,8 @@ HELP = "record a depth camera session to MCAP"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--camera", choices=CAMERAS, required=True)
+    parser.add_argument("--camera", choices=CAMERAS, required=True,
+                        help="the depth camera; virtual renders one turn of a synthetic bed on a turntable")
     parser.add_argument("--serial", help="which camera (serial number or OAK MxId) when several are attached")
     parser.add_argument("--out", required=True, help="the .mcap file to write")
     parser.add_argument("--duration", type=positive(float), help="seconds to record (default: until the "
@@ -21,7 +22,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=parse_seed, default=0, help="virtual camera: which synthetic bed")
     parser.add_argument("--views", type=positive(int), default=18, help="virtual camera: turntable views")
     add_overwrite_flag(parser)
-    parser.add_argument("--quiet", action="store_true")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -40,8 +40,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "detections.json, replay.rrd")
     parser.add_argument("--rrd", help="the Rerun recording (default OUT/replay.rrd)")
     add_config_flags(parser, REPLAY_OPTIONS, OPTION_FLAGS, exclude=("clustering", "readings"))
-    parser.add_argument("--check", action="store_true", help="compare the new caps with the recorded ones unit by "
-                        "unit; exit 1 when a cap is lost, gained or changed beyond the tolerances")
+    parser.add_argument("--check", action="store_true", help="compare the new caps with the recorded ones (or, "
+                        "for a session without them, those of <stem>.expected.json beside it) unit by unit; exit 1 "
+                        "when a cap is lost, gained or changed beyond the tolerances")
     parser.add_argument("--expected", help="--check against these detections (JSON: one document or a list, one "
                         "per fused unit) instead of the session's own")
     add_config_flags(parser, TOLERANCES, TOLERANCE_FLAGS, prefix=TOLERANCE)

@@ -15,7 +15,8 @@ HELP = "generate synthetic mushroom beds with ground truth"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--preset", choices=["val50", "test50"], help="a fixed evaluation set")
+    parser.add_argument("--preset", choices=["val50", "test50"], help="a fixed evaluation set: 50 beds of 5-45 caps "
+                        "each, val50 and test50 from different seeds (--spacing: the same beds at another spacing)")
     parser.add_argument("--scenes", type=positive(int), default=10, help="number of scenes (default 10)")
     parser.add_argument("--seed", type=parse_seed, default=0, help="base seed (default 0)")
     parser.add_argument("--mushrooms", type=parse_mushroom_count, nargs=2, default=(5, 45), metavar=("LOW", "HIGH"),

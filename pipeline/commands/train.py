@@ -42,7 +42,7 @@ TRAIN_FLAGS = {
 
 SCENE_FLAGS = {
     "spacing": {"name": "spacing", "parse": parse_spacing, "metavar": "M",
-                "help": "Point spacing of the training beds in metres."},
+                "help": "Point spacing of the training beds in metres; the weights record it."},
     "jitter": {"name": "spacing-jitter", "parse": positive(float), "metavar": RANGE,
                "help": "Each bed's point spacing is --spacing times a factor from [low, high]."},
     "scale": {"name": "cap-scale", "parse": positive(float), "metavar": RANGE,
@@ -86,7 +86,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_flags(parser, TRAIN_CONFIG, TRAIN_FLAGS, exclude=("scene",))
     add_config_flags(parser, SCENE_CONFIG, SCENE_FLAGS, only=tuple(SCENE_FLAGS), prefix=SCENE)
     parser.add_argument("--resume", action="store_true", help="continue the checkpoint in --out exactly, with the "
-                        "run's own flags (none need repeating; one given must match)")
+                        "run's own flags (none need repeating; one given must match); an error when --out holds "
+                        "none, so a mistyped folder never starts over")
     parser.add_argument("--max-minutes", type=positive(float),
                         help="stop cleanly with a checkpoint after this many minutes (resume later)")
     parser.add_argument("--device", help="cpu or cuda (default: cuda when available)")
