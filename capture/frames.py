@@ -70,11 +70,6 @@ def backproject(depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> tuple[np.n
     return points.astype(np.float32), index
 
 
-def frame_to_points(frame: DepthFrame) -> np.ndarray:
-    """A frame's valid depth as points (N, 3) in metres in the camera frame."""
-    return backproject(frame.depth_m, frame.intrinsics)[0]
-
-
 def log_rerun(rec, frame: DepthFrame, entity: str | None = None, pinhole: bool = True) -> None:
     """A frame in Rerun under ``world/camera/<id>``: its pose, depth image and colour, and with
     ``pinhole`` its intrinsics, logged as static (a camera's intrinsics do not change in a run)."""

@@ -1,10 +1,11 @@
 """The fused cloud of a bed and how it is made: pose priors (recorded poses, a rig with encoder or
 fixed-step angles, or none), refinement, integration, and the bed frame; in one call (``fuse``) or
-frame by frame (``Fuser``, one cloud per turn)."""
+frame by frame (``Fuser``, one cloud per turn); ``UnitBuilder`` picks how a run groups frames into fused units."""
 
 from __future__ import annotations
 
 import time
+from collections import deque
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -395,3 +396,63 @@ def log_rerun(rec, fused: FusedCloud, entity: str = "world/fusion/cloud", radius
     import rerun as rr
 
     rec.log(entity, rr.Points3D(fused.world_points, colors=fused.display_colors, radii=radius))
+
+
+@dataclass(frozen=True)
+class FusionStage:
+    """How frames become fused units: by rig (a turntable: one cloud per turn; several fixed cameras:
+    one per synchronised set), or for one camera without a rig each frame alone or, with ``window``,
+    the last ``window`` frames registered by ICP."""
+
+    config: FusionConfig = field(default_factory=FusionConfig)
+    rig: Rig | None = None
+    window: int | None = None
+    """One camera without a rig: fuse the last N frames, registered by ICP (default: each frame alone)."""
+    recorded: tuple[FusedCloud, ...] | None = None
+    """Fused clouds a session recorded: the frames pass through to the sinks unfused and perception
+    reads these instead (``replay --from-stage fusion``)."""
+
+
+class UnitBuilder:
+    """Frames in, fused units out, by the policy ``describe`` names."""
+
+    def __init__(self, stage: FusionStage, first: DepthFrame, sensors: int):
+        rig, config = stage.rig, stage.config
+        self.window = None
+        if rig is not None and rig.turntable is not None:
+            self.kind, self._fuser = "turn", Fuser(config, rig)
+        elif rig is not None and len(rig.cameras) > 1:
+            self.kind, self._fuser = "set", Fuser(config, rig, every=len(rig.cameras))
+        elif first.turntable_angle is not None and (first.T_world_camera is not None or rig is not None):
+            self.kind, self._fuser = "turn", Fuser(config, rig)
+        elif sensors > 1:
+            if first.T_world_camera is None:
+                raise ValueError(f"{sensors} cameras and neither a rig nor recorded poses: calibrate them from a "
+                                 "recorded turn (mushroom-pose calibrate --session S --out rig.json) and pass --rig")
+            self.kind, self._fuser = "set", Fuser(config, rig, every=sensors)
+        elif stage.window and stage.window > 1:
+            self.kind, self.window, self._fuser = "window", stage.window, None
+            self._frames: deque[DepthFrame] = deque(maxlen=stage.window)
+        else:
+            self.kind, self._fuser = "frame", Fuser(config, rig, every=1)
+        self._stage = stage
+
+    def describe(self) -> str:
+        return {"turn": "one fused cloud per turn of the turntable",
+                "set": "one fused cloud per synchronised set of the rig's cameras",
+                "frame": "each frame alone (single view; --window N fuses the last N frames)",
+                "window": f"the last {self.window} frames, registered by ICP, after every frame"}[self.kind]
+
+    @property
+    def pending(self) -> int:
+        return len(self._frames) if self._fuser is None else self._fuser.pending
+
+    def add(self, frame: DepthFrame) -> FusedCloud | None:
+        if self._fuser is not None:
+            return self._fuser.add(frame)
+        self._frames.append(frame)
+        return fuse(list(self._frames), self._stage.config, self._stage.rig)
+
+    def flush(self) -> FusedCloud | None:
+        """Fuse an unfinished unit (a partial turn at the end of a session)."""
+        return self._fuser.flush() if self._fuser is not None else None

@@ -44,18 +44,10 @@ def cap_rotation(theta_x: np.ndarray | float, theta_y: np.ndarray | float,
     return rotation_y(theta_y) @ rotation_x(theta_x) @ rotation_z(spin)
 
 
-def axis_to_angles(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(theta_x, theta_y) of R = R_y R_x whose third column is the unit ``axis`` (..., 3)."""
-    axis = np.asarray(axis, dtype=np.float64)
-    theta_x = -np.arcsin(np.clip(axis[..., 1], -1.0, 1.0))
-    theta_y = np.arctan2(axis[..., 0], axis[..., 2])
-    return theta_x, theta_y
-
-
 def rotation_from_axis(axis: np.ndarray) -> np.ndarray:
     """The spin-free cap rotation R_y R_x whose cap axis is the unit ``axis`` (..., 3).
 
-    Written out rather than built from ``axis_to_angles``: the pose fit calls it on every cap twice.
+    Written out rather than built from the tilt angles: the pose fit calls it on every cap twice.
     With c = cos(theta_x) = |(u_x, u_z)| (not sqrt(1 - u_y^2), which cancels near +-y), the columns of
     R are (u_z, 0, -u_x) / c, (-u_x u_y / c, c, -u_z u_y / c) and u; an axis exactly along +-y (c = 0)
     gets theta_y = 0."""
@@ -154,12 +146,6 @@ class Caps:
     def score_array(self) -> np.ndarray:
         """The scores, or ones for ground truth."""
         return np.ones(len(self)) if self.scores is None else np.asarray(self.scores, np.float64)
-
-    def select(self, index) -> "Caps":
-        """The caps at ``index`` (a mask or indices), in that order."""
-        pick = (lambda values: None if values is None else values[index])
-        return Caps(self.centers[index], self.rotations[index], self.scales[index], pick(self.scores),
-                    pick(self.members))
 
     def moved(self, T_frame_caps: np.ndarray) -> "Caps":
         """The same caps in another frame (a rigid 4x4): centres and rotations move, sizes do not."""

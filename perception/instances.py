@@ -17,12 +17,16 @@ below 1.9.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import numpy as np
 
 from common.geometry import cell_lookup
 
-METHODS = ("meanshift", "dbscan")
+ClusteringMethod = Literal["meanshift", "dbscan"]
+"""How the network's cap-centre votes are grouped into caps: MeanShift on the collapsed points, or
+DBSCAN on the cap points themselves."""
+METHODS = get_args(ClusteringMethod)
 MEAN_SHIFT_MAX_ITER = 300
 """scikit-learn MeanShift's default ``max_iter``: the steps a seed may take, our climb and its own together."""
 CLIMB_MAX_STEPS = MEAN_SHIFT_MAX_ITER
@@ -33,7 +37,8 @@ SEEDINGS = ("peaks", "bins")
 
 @dataclass(frozen=True)
 class ClusterConfig:
-    method: str = "meanshift"
+    method: ClusteringMethod = "meanshift"
+    """How the network's cap-centre votes are grouped into caps."""
     existence_threshold: float = 0.5
     bandwidth_voxels: float = 2.0
     """MeanShift bandwidth in voxels: collapsed points of one cap lie within a few millimetres."""

@@ -249,6 +249,3 @@ def inference_model(model: MushroomNet) -> MushroomNet:
         cached = _folded_models[model] = (versions, fold_batch_norms(model))
     return cached[1]
 
-
-def count_parameters(model: nn.Module) -> int:
-    return sum(p.numel() for p in model.parameters())

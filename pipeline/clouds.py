@@ -39,11 +39,6 @@ class LoadedCloud:
     """Why no unit makes the cloud a bed, when the units were to be inferred and none did (it is then
     read in metres)."""
 
-    @property
-    def unit_scale(self) -> float:
-        """Metres per input unit."""
-        return UNITS[self.units]
-
 
 def load_cloud(path: Path, units: str = "auto") -> LoadedCloud:
     """A cloud in metres, from a file in ``units`` ("auto": those its spacing and width say, see

@@ -51,7 +51,8 @@ def _run(folder: Path, model, seed: int, views: int, rrd: bool, spawn: bool, pro
     from fusion.turntable import Rig
     from perception.cap import Caps
     from perception.evaluate import evaluate
-    from pipeline.runner import FusionStage, RunConfig
+    from fusion.cloud import FusionStage
+    from pipeline.runner import RunConfig
     from pipeline.session import Outputs, run_chain
     from pipeline.sources import VirtualBed, virtual_bed_source
 

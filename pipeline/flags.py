@@ -52,9 +52,44 @@ def config_fields(reference: str) -> tuple[ConfigField, ...]:
             continue
         doc = following.value.value if (isinstance(following, ast.Expr) and isinstance(following.value, ast.Constant)
                                         and isinstance(following.value.value, str)) else ""
-        fields.append(ConfigField(statement.target.id, statement.annotation, _literal_default(statement.value),
-                                  " ".join(doc.split())))
+        fields.append(ConfigField(statement.target.id, _without_aliases(statement.annotation, module),
+                                  _literal_default(statement.value), " ".join(doc.split())))
     return tuple(fields)
+
+
+def _without_aliases(annotation: ast.expr, module: str) -> ast.expr:
+    """``annotation`` with each name of a module-level type alias (``Method = Literal[...]``, in
+    ``module`` or imported into it) replaced by what the alias stands for, so that a set of choices is
+    written once and every config that takes it gets its flag's choices."""
+    class Resolve(ast.NodeTransformer):
+        def visit_Name(self, node: ast.Name) -> ast.expr:
+            if node.id in _SCALARS or node.id in ("Literal", "tuple", "None"):
+                return node
+            return _alias(module, node.id) or node
+
+    return Resolve().visit(annotation)
+
+
+@functools.cache
+def _module_statements(module: str) -> tuple[ast.stmt, ...]:
+    """The top-level statements of ``module``'s source (empty when it has none)."""
+    spec = importlib.util.find_spec(module)
+    if spec is None or spec.origin is None or not spec.origin.endswith(".py"):
+        return ()
+    return tuple(ast.parse(Path(spec.origin).read_text()).body)
+
+
+def _alias(module: str, name: str, depth: int = 0) -> ast.expr | None:
+    """What the type alias ``name`` of ``module`` stands for, followed through ``from X import name``."""
+    for statement in _module_statements(module):
+        if (isinstance(statement, ast.Assign) and len(statement.targets) == 1
+                and isinstance(statement.targets[0], ast.Name) and statement.targets[0].id == name
+                and isinstance(statement.value, ast.Subscript)):
+            return statement.value
+        if isinstance(statement, ast.ImportFrom) and statement.module and depth < 3:
+            if any((alias.asname or alias.name) == name for alias in statement.names):
+                return _alias(statement.module, name, depth + 1)
+    return None
 
 
 def _class_body(source: str, name: str) -> list[ast.stmt] | None:

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+from perception.instances import ClusteringMethod
 from pipeline.check import CheckReport, Tolerances, compare
 from pipeline.runner import RunSummary
 
@@ -28,7 +29,7 @@ class ReplayOptions:
     """Rig file from mushroom-pose calibrate (a turntable, or several fixed cameras)."""
     window: int | None = None
     """One camera without a rig: fuse the last N frames, registered by ICP (default: each frame alone)."""
-    clustering: Literal["meanshift", "dbscan"] = "meanshift"
+    clustering: ClusteringMethod = "meanshift"
     """How the network's cap-centre votes are grouped into caps."""
     readings: int | None = None
     """How many times the network reads each fused cloud, turned a further 360/N degrees about the
@@ -120,7 +121,8 @@ def run_replay(session: Path, model, out_dir: Path, rrd: Path | None, options: R
     from capture.source import Paced, SourceError
     from fusion.cloud import FusedCloud
     from fusion.turntable import Rig
-    from pipeline.runner import FusionStage, PerceptionStage, RunConfig
+    from fusion.cloud import FusionStage
+    from pipeline.runner import PerceptionStage, RunConfig
     from pipeline.session import Outputs, run_chain
 
     if check is not None and expected is None:

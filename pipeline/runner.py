@@ -15,38 +15,22 @@ import os
 import queue
 import threading
 import time
-from collections import deque
 from dataclasses import dataclass, field
-from typing import Callable, Literal
+from typing import Callable
 
 from capture.frames import DepthFrame
 from capture.source import Source
-from fusion.cloud import FusedCloud, Fuser, FusionConfig, fuse
-from fusion.turntable import Rig
+from fusion.cloud import FusedCloud, FusionStage, UnitBuilder
+from perception.instances import ClusteringMethod
 from pipeline.perception_process import PerceptionProcess
 from pipeline.process import hand_back_freed_memory
-
-
-@dataclass(frozen=True)
-class FusionStage:
-    """How frames become fused units: by rig (a turntable: one cloud per turn; several fixed cameras:
-    one per synchronised set), or for one camera without a rig each frame alone or, with ``window``,
-    the last ``window`` frames registered by ICP."""
-
-    config: FusionConfig = field(default_factory=FusionConfig)
-    rig: Rig | None = None
-    window: int | None = None
-    """One camera without a rig: fuse the last N frames, registered by ICP (default: each frame alone)."""
-    recorded: tuple[FusedCloud, ...] | None = None
-    """Fused clouds a session recorded: the frames pass through to the sinks unfused and perception
-    reads these instead (``replay --from-stage fusion``)."""
 
 
 @dataclass(frozen=True)
 class PerceptionStage:
     """The model that reads each fused unit and how its instances are clustered."""
 
-    clustering: Literal["meanshift", "dbscan"] = "meanshift"
+    clustering: ClusteringMethod = "meanshift"
     """How the network's cap-centre votes are grouped into caps."""
     readings: int = 1
     """How many times the network reads each fused cloud, turned a further 360/N degrees about the
@@ -159,54 +143,8 @@ class RunSummary:
     last_detection: Detection | None = None
     """The newest unit's whole detection (its cloud and per-point results)."""
     last_unit: FusedUnit | None = None
-    unit_kind: str | None = None
     stopped_by: str = "end"
     """end (the source ended), duration, turns, or a signal's name."""
-
-
-class UnitBuilder:
-    """Frames in, fused units out, by the policy ``describe`` names."""
-
-    def __init__(self, stage: FusionStage, first: DepthFrame, sensors: int):
-        rig, config = stage.rig, stage.config
-        self.window = None
-        if rig is not None and rig.turntable is not None:
-            self.kind, self._fuser = "turn", Fuser(config, rig)
-        elif rig is not None and len(rig.cameras) > 1:
-            self.kind, self._fuser = "set", Fuser(config, rig, every=len(rig.cameras))
-        elif first.turntable_angle is not None and (first.T_world_camera is not None or rig is not None):
-            self.kind, self._fuser = "turn", Fuser(config, rig)
-        elif sensors > 1:
-            if first.T_world_camera is None:
-                raise ValueError(f"{sensors} cameras and neither a rig nor recorded poses: calibrate them from a "
-                                 "recorded turn (mushroom-pose calibrate --session S --out rig.json) and pass --rig")
-            self.kind, self._fuser = "set", Fuser(config, rig, every=sensors)
-        elif stage.window and stage.window > 1:
-            self.kind, self.window, self._fuser = "window", stage.window, None
-            self._frames: deque[DepthFrame] = deque(maxlen=stage.window)
-        else:
-            self.kind, self._fuser = "frame", Fuser(config, rig, every=1)
-        self._stage = stage
-
-    def describe(self) -> str:
-        return {"turn": "one fused cloud per turn of the turntable",
-                "set": "one fused cloud per synchronised set of the rig's cameras",
-                "frame": "each frame alone (single view; --window N fuses the last N frames)",
-                "window": f"the last {self.window} frames, registered by ICP, after every frame"}[self.kind]
-
-    @property
-    def pending(self) -> int:
-        return len(self._frames) if self._fuser is None else self._fuser.pending
-
-    def add(self, frame: DepthFrame) -> FusedCloud | None:
-        if self._fuser is not None:
-            return self._fuser.add(frame)
-        self._frames.append(frame)
-        return fuse(list(self._frames), self._stage.config, self._stage.rig)
-
-    def flush(self) -> FusedCloud | None:
-        """Fuse an unfinished unit (a partial turn at the end of a session)."""
-        return self._fuser.flush() if self._fuser is not None else None
 
 
 _END = object()
@@ -386,7 +324,6 @@ class Runner:
                 continue
             if builder is None:
                 builder = UnitBuilder(self.config.fusion, frame, self.sensors)
-                self.summary.unit_kind = builder.kind
                 if self.on_start is not None:
                     self.on_start(builder.describe())
             started = time.perf_counter()
@@ -407,7 +344,6 @@ class Runner:
                     self.summary.stopped_by = "turns"
                     return
         if recorded is not None:
-            self.summary.unit_kind = "recorded"
             for cloud in recorded:
                 last = _frame_time(cloud, frame)
                 self._emit(cloud, "recorded", len(cloud.frame_ids), index, last, arrival, 0.0)

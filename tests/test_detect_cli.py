@@ -265,7 +265,7 @@ def test_a_bed_beyond_the_voxel_grid_is_refused_even_when_forced(tmp_path, weigh
 def test_a_stray_point_does_not_make_a_metre_cloud_millimetres(tmp_path, scene_ply):
     _, scene = scene_ply
     points = np.vstack([scene.points, [[25.0, 0.0, 0.0]]])
-    assert load_cloud(write_ply(tmp_path / "stray.ply", points)).unit_scale == 1.0
+    assert load_cloud(write_ply(tmp_path / "stray.ply", points)).units == "m"
 
 
 def test_fused_clouds_are_read_from_mcap(tmp_path, scene_ply, weights):
@@ -289,7 +289,7 @@ def test_millimetre_clouds_are_detected_and_converted(tmp_path, scene_ply):
     _, scene = scene_ply
     path = write_ply(tmp_path / "mm.ply", scene.points * 1000)
     cloud = load_cloud(path)
-    assert cloud.unit_scale == 0.001
+    assert cloud.units == "mm"
     np.testing.assert_allclose(cloud.points, scene.points, atol=1e-6)
 
 

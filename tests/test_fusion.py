@@ -10,7 +10,7 @@ import open3d as o3d
 import pytest
 from scipy.spatial import cKDTree
 
-from capture.frames import CameraIntrinsics, DepthFrame, frame_to_points
+from capture.frames import CameraIntrinsics, DepthFrame, backproject
 from capture.virtual import VirtualCameraConfig, VirtualSource, circle_turntable
 from common.geometry import Turntable, look_at, transform_points
 from fusion.cloud import FusedCloud, FusionConfig, Fuser, fuse, log_rerun
@@ -172,7 +172,7 @@ def test_single_frame_gives_its_back_projected_cloud(session):
     fused = fuse([frame])
     smoothed = dataclasses.replace(frame, depth=np.round(smooth_depth(
         frame.depth_m, *IntegrationConfig().smoothing) / frame.depth_scale).astype(np.uint16))
-    back_projected = transform_points(frame.T_world_camera, frame_to_points(smoothed))
+    back_projected = transform_points(frame.T_world_camera, backproject(smoothed.depth_m, smoothed.intrinsics)[0])
     distance, _ = cKDTree(back_projected).query(fused.world_points)
     assert len(fused) > 1000 and distance.max() < 0.002 * np.sqrt(3)
     # the bilateral smoothing brings the cloud nearer the true surface than the raw depth

@@ -15,7 +15,8 @@ from capture.frames import CameraIntrinsics, DepthFrame
 from capture.mcap_io import McapRecorder, McapSource, read_documents, read_fused_units
 from capture.source import Source, SourceError
 from helpers import rrd_entity_rows
-from pipeline.runner import RunConfig, Runner, UnitBuilder
+from fusion.cloud import UnitBuilder
+from pipeline.runner import RunConfig, Runner
 from pipeline.sinks import McapSink
 from test_detect_cli import run
 

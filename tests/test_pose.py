@@ -4,8 +4,16 @@ import numpy as np
 import pytest
 
 from perception import pose
-from perception.cap import CAP_HEIGHT_RATIO, axis_to_angles, cap_rotation, rotation_from_axis
+from perception.cap import CAP_HEIGHT_RATIO, cap_rotation, rotation_from_axis
 from perception.pose import fit_caps
+
+
+def axis_to_angles(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(theta_x, theta_y) of R = R_y R_x whose third column is the unit ``axis`` (..., 3)."""
+    axis = np.asarray(axis, dtype=np.float64)
+    theta_x = -np.arcsin(np.clip(axis[..., 1], -1.0, 1.0))
+    theta_y = np.arctan2(axis[..., 0], axis[..., 2])
+    return theta_x, theta_y
 
 
 def ideal_cap(center, theta_x, theta_y, spin, s, s_z, n=400, seed=0):

@@ -6,7 +6,7 @@ import argparse
 import sys
 import time
 
-from pipeline.commands.common import (CliError, add_overwrite_flag, refuse_to_replace, writable_file)
+from pipeline.commands.common import CliError, add_overwrite_flag, refuse_to_replace, writable_file
 
 NAME = "calibrate"
 HELP = "turntable axis and camera extrinsics from a recorded turn"

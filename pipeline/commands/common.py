@@ -181,12 +181,27 @@ SHIPPED_ZOOM = 1.2
 """The zoom the shipped model's weights record (trained with --scale-jitter 1.05 1.35)."""
 FILE_READINGS = 4
 """perception.detect.FILE_READINGS: how many turned readings of a cloud ``detect`` and ``eval`` average."""
-CLUSTERING = ("meanshift", "dbscan")
-"""perception.instances.METHODS: how voted centres are grouped into caps."""
 CAMERAS = ("realsense", "oak", "virtual")
 """pipeline.sources.CAMERAS: the depth cameras ``record`` and ``live`` read."""
 VISIBILITY = ("hpr", "camera", "fused", "katz")
 """perception.synthetic.scene.VISIBILITY_MODELS: how a synthetic bed becomes points."""
+
+
+# ---- flags several commands share
+
+def add_model_flag(parser: argparse.ArgumentParser) -> None:
+    """``--model``: the weights a command reads (``load_model``)."""
+    parser.add_argument("--model", help="weights file (default: the shipped model)")
+
+
+def add_threads_flag(parser: argparse.ArgumentParser) -> None:
+    """``--threads``: torch's threads (``torch_threads``)."""
+    parser.add_argument("--threads", type=parse_threads, help="torch threads (default: all cores)")
+
+
+def add_quiet_flag(parser: argparse.ArgumentParser, what: str = "no progress bar") -> None:
+    """``--quiet``: ``what`` the command then leaves out of its output."""
+    parser.add_argument("--quiet", action="store_true", help=what)
 
 
 # ---- the model and torch

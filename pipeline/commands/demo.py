@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from pipeline.commands.common import (CliError, CommandFailed, add_overwrite_flag, load_model, parse_seed,
-                                      parse_threads, positive, refuse_to_replace, torch_threads, writable_dir)
+from pipeline.commands.common import (CliError, CommandFailed, add_model_flag, add_overwrite_flag, add_quiet_flag,
+                                      add_threads_flag, load_model, parse_seed, positive, refuse_to_replace,
+                                      torch_threads, writable_dir)
 
 OUTPUTS = ("session.mcap", "detections.json", "demo.rrd")
 """What a demo writes into --out; none is replaced without --overwrite."""
@@ -19,12 +20,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "detections.json, demo.rrd")
     parser.add_argument("--seed", type=parse_seed, default=0, help="which synthetic bed")
     parser.add_argument("--views", type=positive(int), default=18, help="turntable views (default 18)")
-    parser.add_argument("--model", help="weights file (default: the shipped model)")
+    add_model_flag(parser)
     parser.add_argument("--spawn", action="store_true", help="also show the run in a Rerun viewer")
     parser.add_argument("--no-rrd", action="store_true", help="do not write demo.rrd")
-    parser.add_argument("--threads", type=parse_threads, help="torch threads (default: all cores)")
+    add_threads_flag(parser)
     add_overwrite_flag(parser)
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_quiet_flag(parser)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -6,9 +6,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipeline.commands.common import (CLUSTERING, FILE_READINGS, SHIPPED_ZOOM, CliError, add_overwrite_flag, load_model,
-                                      model_path, parse_readings, parse_zoom, refuse_to_replace, replace_file,
-                                      writable_file)
+from pipeline.commands.common import (FILE_READINGS, SHIPPED_ZOOM, CliError, add_model_flag, add_overwrite_flag,
+                                      load_model, model_path, parse_readings, parse_zoom, refuse_to_replace,
+                                      replace_file, writable_file)
 
 NAME = "detect"
 HELP = ("find caps in a point cloud (.ply, .pcd, .npz) or a session .mcap (its fused cloud, or its frames fused "
@@ -16,14 +16,15 @@ HELP = ("find caps in a point cloud (.ply, .pcd, .npz) or a session .mcap (its f
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from pipeline.flags import add_config_flags  # loads ast: only a parsed detect pays it
+
     parser.add_argument("cloud", help="the point cloud: a .ply, .pcd or scene .npz, or a session .mcap: its last "
                         "/fusion/cloud, or for a session of raw frames its frames fused as replay fuses them (the "
                         "last unit's caps, in the world frame)")
     parser.add_argument("--out", default="detections.json", help="detections JSON (default detections.json)")
     parser.add_argument("--rrd", help="also write a Rerun recording of the result")
-    parser.add_argument("--model", help="weights file (default: the shipped model)")
-    parser.add_argument("--clustering", choices=CLUSTERING, default="meanshift",
-                        help="how the network's cap-centre votes are grouped into caps")
+    add_model_flag(parser)
+    add_config_flags(parser, "perception.instances:ClusterConfig", {"method": {"name": "clustering"}}, only=("method",))
     parser.add_argument("--zoom", type=parse_zoom, help="scale the network reads the cloud at (default: the one "
                         f"the weights record, {SHIPPED_ZOOM} for the shipped model, lowered for clouds sparser than "
                         "its training beds)")
@@ -78,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
         if T_turned is not T_input_bed:
             T_input_bed, bed_points = T_turned, transform_points(np.linalg.inv(T_turned), points)
     try:
-        result = detect_points(model, bed_points, ClusterConfig(method=args.clustering), zoom=args.zoom,
+        result = detect_points(model, bed_points, ClusterConfig(method=args.method), zoom=args.zoom,
                                readings=args.readings)
     except ValueError as error:
         raise CliError(str(error)) from None
@@ -173,7 +174,7 @@ def _detect_session(args: argparse.Namespace) -> int:
     source = McapSource(args.cloud)
     try:
         source.open()
-        summary = run_chain(source, model, RunConfig(perception=PerceptionStage(args.clustering, args.readings)),
+        summary = run_chain(source, model, RunConfig(perception=PerceptionStage(args.method, args.readings)),
                             Outputs(rrd=rrd, detections=out, name=Path(args.cloud).name, quiet=True),
                             sensors=max(1, len(source.sensor_ids)))
     except (SourceError, ValueError) as error:

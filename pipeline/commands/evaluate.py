@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from pipeline.commands.common import (FILE_READINGS, SHIPPED_ZOOM, SPACING_HELP, VISIBILITY, CliError,
-                                      add_overwrite_flag, add_ray_flag, json_text, load_model, model_path,
-                                      parse_readings, parse_spacing, parse_zoom, positive, ray_options,
+from pipeline.commands.common import (FILE_READINGS, SHIPPED_ZOOM, SPACING_HELP, VISIBILITY, CliError, add_model_flag,
+                                      add_overwrite_flag, add_quiet_flag, add_ray_flag, json_text, load_model,
+                                      model_path, parse_readings, parse_spacing, parse_zoom, positive, ray_options,
                                       refuse_to_replace, replace_file, writable_file)
 
 PAPER = {"ap25": {"meanshift": 0.9957, "dbscan": 0.9920}, "ap50": {"meanshift": 0.8195, "dbscan": 0.8148},
@@ -21,7 +21,7 @@ HELP = "the paper's metrics on val50/test50, beside the paper's numbers"
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--set", nargs="+", choices=["val50", "test50"], default=["val50", "test50"],
                         help="the evaluation sets to score (50 beds each, as synth --preset makes them)")
-    parser.add_argument("--model", help="weights file (default: the shipped model)")
+    add_model_flag(parser)
     parser.add_argument("--json", help="also write the figures (fractions) to this JSON file; an undefined "
                         "figure is null")
     parser.add_argument("--visibility", choices=VISIBILITY, default="hpr",
@@ -50,7 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "3 DBSCAN vs MeanShift, 4 scale and angle errors with ICP refinement")
     parser.add_argument("--encodings", help="--table 2: the folder of the three encodings' training runs "
                         "(python bench/encodings.py --out DIR makes them)")
-    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_quiet_flag(parser, "no progress bars")
     add_overwrite_flag(parser)
     add_ray_flag(parser, "read the beds as Ray tasks (the same figures as here)")
 

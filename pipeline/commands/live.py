@@ -7,9 +7,10 @@ import sys
 import time
 from pathlib import Path
 
-from pipeline.commands.common import (CAMERAS, STOP_EXIT, CliError, CommandFailed, add_overwrite_flag, load_model,
-                                      parse_readings, parse_seed, parse_threads, positive, refuse_to_replace,
-                                      torch_threads, writable_file, written_files)
+from pipeline.commands.common import (CAMERAS, STOP_EXIT, CliError, CommandFailed, add_model_flag, add_overwrite_flag,
+                                      add_quiet_flag, add_threads_flag, load_model, parse_readings, parse_seed,
+                                      parse_threads, positive, refuse_to_replace, torch_threads, writable_file,
+                                      written_files)
 
 NAME = "live"
 HELP = "capture, fuse and detect as frames arrive, shown in Rerun and recorded"
@@ -33,7 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--serial", help="which camera (serial number or OAK MxId) when several are attached")
     parser.add_argument("--playback", help="RealSense: play this recorded device file (.db3) through the driver")
     parser.add_argument("--rig", help="rig file from mushroom-pose calibrate (turntable or several cameras)")
-    add_config_flags(parser, "pipeline.runner:FusionStage", STAGE_FLAGS, only=("window",))
+    add_config_flags(parser, "fusion.cloud:FusionStage", STAGE_FLAGS, only=("window",))
     parser.add_argument("--record", help="record the session (frames, fused clouds, caps) to this .mcap")
     add_overwrite_flag(parser)
     parser.add_argument("--rrd", help="save the Rerun recording to this .rrd")
@@ -43,10 +44,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     viewer.add_argument("--serve", action="store_true", help="serve the Rerun web viewer (a headless machine)")
     add_config_flags(parser, "pipeline.runner:RunConfig", RUN_FLAGS, only=tuple(RUN_FLAGS))
     add_config_flags(parser, "pipeline.sources:VirtualBed", BED_FLAGS, only=tuple(BED_FLAGS))
-    parser.add_argument("--model", help="weights file (default: the shipped model)")
+    add_model_flag(parser)
     add_config_flags(parser, "pipeline.runner:PerceptionStage", PERCEPTION_FLAGS)
-    parser.add_argument("--threads", type=parse_threads, help="torch threads (default: all cores)")
-    parser.add_argument("--quiet", action="store_true", help="no line per fused unit")
+    add_threads_flag(parser)
+    add_quiet_flag(parser, "no line per fused unit")
 
 
 def _checked_outputs(args: argparse.Namespace) -> tuple[Path | None, Path | None, Path | None]:
@@ -69,7 +70,8 @@ def run(args: argparse.Namespace) -> int:
     from capture.source import SourceError
     from fusion.turntable import Rig
     from pipeline.flags import config_from_args
-    from pipeline.runner import FusionStage, PerceptionStage, RunConfig
+    from fusion.cloud import FusionStage
+    from pipeline.runner import PerceptionStage, RunConfig
     from pipeline.session import Outputs, run_chain
     from pipeline.sources import make_source
 

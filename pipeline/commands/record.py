@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from pipeline.commands.common import (CAMERAS, STOP_EXIT, CliError, CommandFailed, add_overwrite_flag, parse_seed,
-                                      positive, refuse_to_replace, writable_file)
+from pipeline.commands.common import (CAMERAS, STOP_EXIT, CliError, CommandFailed, add_overwrite_flag, add_quiet_flag,
+                                      parse_seed, positive, refuse_to_replace, writable_file)
 
 NAME = "record"
 HELP = "record a depth camera session to MCAP"
@@ -22,7 +22,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=parse_seed, default=0, help="virtual camera: which synthetic bed")
     parser.add_argument("--views", type=positive(int), default=18, help="virtual camera: turntable views")
     add_overwrite_flag(parser)
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_quiet_flag(parser)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -7,9 +7,10 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipeline.commands.common import (STOP_EXIT, CliError, CommandFailed, add_overwrite_flag, add_ray_flag, load_model,
-                                      model_path, parse_readings, parse_threads, positive, ray_options,
-                                      refuse_to_replace, torch_threads, writable_dir, writable_file, written_files)
+from pipeline.commands.common import (STOP_EXIT, CliError, CommandFailed, add_model_flag, add_overwrite_flag,
+                                      add_quiet_flag, add_ray_flag, add_threads_flag, load_model, model_path,
+                                      parse_readings, positive, ray_options, refuse_to_replace, torch_threads,
+                                      writable_dir, writable_file, written_files)
 
 TOLERANCES = "pipeline.check:Tolerances"
 TOLERANCE = "tol_"
@@ -48,10 +49,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_flags(parser, TOLERANCES, TOLERANCE_FLAGS, prefix=TOLERANCE)
     parser.add_argument("--verbose", action="store_true", help="--check: list every cap, not only changes")
     add_overwrite_flag(parser)
-    parser.add_argument("--model", help="weights file (default: the shipped model)")
+    add_model_flag(parser)
     add_config_flags(parser, REPLAY_OPTIONS, OPTION_FLAGS, only=("clustering", "readings"))
-    parser.add_argument("--threads", type=parse_threads, help="torch threads (default: all cores)")
-    parser.add_argument("--quiet", action="store_true", help="no line per fused unit")
+    add_threads_flag(parser)
+    add_quiet_flag(parser, "no line per fused unit")
     add_ray_flag(parser, "several sessions: one Ray task each")
 
 

@@ -7,8 +7,8 @@ import sys
 import time
 
 from pipeline.commands.common import (SPACING_HELP, VISIBILITY, CliError, CommandFailed, add_overwrite_flag,
-                                      add_ray_flag, parse_mushroom_count, parse_seed, parse_spacing, positive,
-                                      ray_options, refuse_to_replace, writable_dir, writable_file)
+                                      add_quiet_flag, add_ray_flag, parse_mushroom_count, parse_seed, parse_spacing,
+                                      positive, ray_options, refuse_to_replace, writable_dir, writable_file)
 
 NAME = "synth"
 HELP = "generate synthetic mushroom beds with ground truth"
@@ -30,7 +30,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rrd", help="also log the scenes to this Rerun recording")
     parser.add_argument("--no-ply", action="store_true", help="write only the .npz files")
     parser.add_argument("--preview", help="also render the first bed to this PNG (shaded meshes, oblique view)")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_quiet_flag(parser)
     add_overwrite_flag(parser)
     add_ray_flag(parser, "make the beds as Ray tasks (the same beds as here)")
 

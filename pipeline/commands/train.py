@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from pipeline.commands.common import (CliError, CommandFailed, add_ray_flag, at_most, non_negative,
-                                      parse_learning_rate, parse_run_fraction, parse_seed, parse_spacing, parse_threads,
+from pipeline.commands.common import (CliError, CommandFailed, add_quiet_flag, add_ray_flag, add_threads_flag, at_most,
+                                      non_negative, parse_learning_rate, parse_run_fraction, parse_seed, parse_spacing,
                                       parse_zoom, positive, ray_options, torch_threads, writable_dir)
 
 TRAIN_CONFIG = "perception.train:TrainConfig"
@@ -91,8 +91,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-minutes", type=positive(float),
                         help="stop cleanly with a checkpoint after this many minutes (resume later)")
     parser.add_argument("--device", help="cpu or cuda (default: cuda when available)")
-    parser.add_argument("--threads", type=parse_threads, help="torch threads (default: all cores)")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_threads_flag(parser)
+    add_quiet_flag(parser)
     add_ray_flag(parser, "make the training beds as Ray tasks (the same beds, so the same run)")
 
 
