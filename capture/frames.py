@@ -1,4 +1,4 @@
-"""What every source yields: depth frames with their intrinsics (DESIGN.md section 3)."""
+"""What every source yields: depth frames with their intrinsics (docs/DESIGN.md section 3)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Depth frames to and from MCAP (DESIGN.md section 5): record any Source, replay a recording as a Source.
+"""Depth frames to and from MCAP (docs/DESIGN.md section 5): record any Source, replay a recording as a Source.
 
 Layout of a recording, per sensor ``<id>`` (all messages of one frame share log_time = its timestamp_ns):
 

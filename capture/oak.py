@@ -2,7 +2,7 @@
 
 The device part (Camera + StereoDepth + Sync nodes) needs hardware. The conversion from depthai's
 host-side objects (``ImgFrame``, ``CalibrationHandler``) to ``DepthFrame`` is kept in plain functions so
-it is the same code live and in tests without a device (DESIGN.md section 6).
+it is the same code live and in tests without a device (docs/DESIGN.md section 6).
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 A live camera and a recorded ``.db3`` (rosbag2, what pyrealsense2 2.59 records) go through the same
 pipeline code, so tests that play back a file made from virtual-camera frames exercise the real driver
-path (DESIGN.md section 6). ``write_device_recording`` makes such a file with a software device.
+path (docs/DESIGN.md section 6). ``write_device_recording`` makes such a file with a software device.
 """
 
 from __future__ import annotations

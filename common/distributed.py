@@ -1,4 +1,4 @@
-"""Work spread over Ray tasks (DESIGN.md section 7): the same code on one machine (a local Ray) and on a
+"""Work spread over Ray tasks (docs/DESIGN.md section 7): the same code on one machine (a local Ray) and on a
 cluster (its address). Ray is an optional extra (``pip install -e '.[ray]'``); nothing imports it until
 a command is asked to use it."""
 

@@ -1,6 +1,6 @@
 """Geometry every stage shares: rigid transforms, integer voxel grids and the turntable model.
 
-Transforms are 4x4 ``T_parent_child`` matrices in metres (DESIGN.md section 3).
+Transforms are 4x4 ``T_parent_child`` matrices in metres (docs/DESIGN.md section 3).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The bed frame: z up along the bed's normal, origin on the bed plane (DESIGN.md section 3); which side
+"""The bed frame: z up along the bed's normal, origin on the bed plane (docs/DESIGN.md section 3); which side
 of the plane is up; and whether a cloud is a bed seen from above at all."""
 
 from __future__ import annotations

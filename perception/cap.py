@@ -1,8 +1,9 @@
-"""The cap model, the one definition every part of perception agrees on (DESIGN.md section 4).
+"""The cap model, the one definition every part of perception agrees on (docs/DESIGN.md section 4).
 
-A cap is the upper half of an ellipsoid with semi-axes (s, s, s_z), s_z = 2 s / 3, centred at the
-centre of its wide base. ``R`` maps the cap frame to the bed frame, R = R_y(theta_y) R_x(theta_x)
-(times a spin about the cap axis, which changes nothing); the cap axis is u = R[:, 2].
+A cap is the upper half of an ellipsoid with semi-axes (s_x, s_y, s_z) in its own frame, centred at
+the centre of its wide base; the template is round (s_x = s_y = s) with s_z = 2 s / 3. ``R`` maps
+the cap frame to the bed frame, R = R_y(theta_y) R_x(theta_x) (times a spin about the cap axis, which
+changes nothing); the cap axis is u = R[:, 2].
 """
 
 from __future__ import annotations
@@ -113,7 +114,7 @@ def cap_box(center: np.ndarray, rotation: np.ndarray, scales: np.ndarray) -> Ori
 @dataclass(frozen=True)
 class Caps:
     """The caps of one bed in one frame, one row each: what detect finds, eval scores, the sinks show and
-    the detection JSON holds (DESIGN.md section 3). Cap k's id is k.
+    the detection JSON holds (docs/DESIGN.md section 3). Cap k's id is k.
 
     ``scores`` is None for ground truth (every cap counts alike); ``members`` is how many of the points
     the caps were found from belong to each (the network's voxels in ``find_caps``, the input cloud's

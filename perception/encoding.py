@@ -1,4 +1,4 @@
-"""The implicit pose encoding (paper Sec. 3.2, DESIGN.md section 4): per-point training targets."""
+"""The implicit pose encoding (paper Sec. 3.2, docs/DESIGN.md section 4): per-point training targets."""
 
 from __future__ import annotations
 

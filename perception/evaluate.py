@@ -1,4 +1,4 @@
-"""Evaluation of cap detections (DESIGN.md section 4): exact oriented-box IoU, AP, scale and axis errors.
+"""Evaluation of cap detections (docs/DESIGN.md section 4): exact oriented-box IoU, AP, scale and axis errors.
 
 A cap's box is ``cap_box(center, R, scales)``. IoU is the exact volume of the intersection of two
 oriented boxes over their union. AP pools all detections of all scenes, sorts them by score and

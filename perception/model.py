@@ -1,7 +1,7 @@
 """The network: an FCGF-style residual sparse U-Net and the paper's per-voxel head (Sec. 3.1-3.2).
 
 The backbone follows FCGF's ResUNetBN2C (channels 32/64/128/256, transposed 64/64/64/128, a 7^3
-first convolution); ``NetworkConfig`` can slim it, which DESIGN.md section 9 invites where the
+first convolution); ``NetworkConfig`` can slim it, which docs/DESIGN.md section 9 invites where the
 validation metrics hold. The head is three linear layers mapping each voxel's features to five
 numbers: the existence logit, the residual centre (x, y, z, in ``LENGTH_UNIT``s) and the
 orientation value.

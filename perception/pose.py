@@ -1,4 +1,4 @@
-"""Cap pose from the implicit encoding (paper Sec. 3.4, DESIGN.md section 4), all instances at once.
+"""Cap pose from the implicit encoding (paper Sec. 3.4, docs/DESIGN.md section 4), all instances at once.
 
 For a cap with centre c and axis u, the orientation value of a point p is u . (p - c) / s_z, so the
 least squares (P - c) lambda = Y_o gives lambda = u / s_z: u = lambda / |lambda|. The c we have is

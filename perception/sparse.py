@@ -1,4 +1,4 @@
-"""Sparse 3D convolution in plain PyTorch (DESIGN.md section 9).
+"""Sparse 3D convolution in plain PyTorch (docs/DESIGN.md section 9).
 
 Voxels are rows of a ``SparseTensor``: features (N, C) and integer coords (N, 4) = (batch, x, y, z)
 at the tensor's own level (stride 2^k holds floor(original / 2^k)). Neighbours are found in a dense

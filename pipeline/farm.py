@@ -1,6 +1,6 @@
 """Many recorded sessions replayed as one job (``replay SESSIONS... [--ray [ADDRESS]]``): each session runs
 the same chain as a single ``replay`` (pipeline/replay.py), in this process one after another, or as
-one Ray task each (DESIGN.md section 7: the same code on a laptop and on a cluster). A session that
+one Ray task each (docs/DESIGN.md section 7: the same code on a laptop and on a cluster). A session that
 fails is one failed row of the report, never the end of the run."""
 
 from __future__ import annotations

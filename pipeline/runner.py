@@ -1,4 +1,4 @@
-"""The one chain behind demo, live, replay and detect on a session (DESIGN.md section 5b).
+"""The one chain behind demo, live, replay and detect on a session (docs/DESIGN.md section 5b).
 
 A source thread reads frames into a bounded queue and hands each to the sinks that record it; fusion
 takes frames as they arrive and emits a fused unit (a turn, a synchronised set of frames, a frame, or

@@ -54,7 +54,7 @@ def one_line_error(result, fragment):
 
 
 def test_detect_writes_json_in_the_input_frame(tmp_path, scene_ply):
-    """The document's layout (DESIGN.md section 3), with the shipped model; test_detect_truth.py checks
+    """The document's layout (docs/DESIGN.md section 3), with the shipped model; test_detect_truth.py checks
     its values against the truth."""
     ply, scene = scene_ply
     out = tmp_path / "det.json"

@@ -51,7 +51,7 @@ class SceneConfig:
     max_tilt_deg: float = 45.0
     cluster_probability: float = 0.35
     """Chance that a mushroom is placed right beside an existing one: real beds grow in touching
-    clusters (DESIGN.md section 6b), which uniform placement alone rarely produces."""
+    clusters (docs/DESIGN.md section 6b), which uniform placement alone rarely produces."""
     cluster_spacing: tuple[float, float] = (0.8, 1.15)
     """Distance between the centres of a clustered mushroom and its neighbour, as a factor on the sum
     of their radii, drawn from [low, high]. Below 1 the caps overlap in top view, so one stands
@@ -62,7 +62,7 @@ class SceneConfig:
     spacing: float = 0.003
     """Point spacing (metres): the down-sampling cell of the visibility step, jittered by ``jitter``.
     Finer than the network's 4.1-4.5 mm voxel, so that every voxel the surface crosses holds a point,
-    as in a depth camera's or a fused cloud (DESIGN.md section 6b: 1.2 mm spacing). At 5.1 mm a cap is
+    as in a depth camera's or a fused cloud (docs/DESIGN.md section 6b: 1.2 mm spacing). At 5.1 mm a cap is
     a gappy shell of voxels (``perception.detect.predict``)."""
     jitter: tuple[float, float] = (0.8, 1.2)
     oversample: float = 3.0
