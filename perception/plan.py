@@ -1,0 +1,255 @@
+"""From caps to a pick plan: which caps are ready, from where the gripper comes to each, whether it fits
+between the neighbours, which caps wait for others, and the order to take them in.
+
+Everything is computed for all caps at once from the detections and the fused cloud, in the caps'
+frame, with ``up`` the bed's normal in that frame:
+
+- ``ready``: the cap is as wide as ``PickConfig.pick_diameter_mm`` and scored at least ``min_score``.
+- ``grasp`` and ``approach``: a suction cup takes a cap at the top of its dome, fingers at its rim (the
+  cap's wide base); the gripper comes along ``approach`` (a unit vector pointing away from the cap, the
+  way the gripper moves back out), the cap's axis turned toward ``up`` as far as ``max_tilt_deg`` asks.
+- ``clearance_mm``: the free room around the approach line from the grasp point up: the distance from
+  that line to the nearest point of the cloud or of another cap's dome, leaving out the cap's own and
+  those of the caps it waits for.
+  ``fits`` says whether the gripper's radius (the cup's; for fingers, the cap's radius plus
+  ``finger_clearance_mm``) fits in it, and for fingers whether the cap fits between them.
+- ``blocked_by``: the caps whose dome the approach line passes through above the grasp point (a small
+  cap under a larger one's rim waits for it).
+- ``order``: the caps that can be picked (ready, fitting, and waiting only for caps that can be picked),
+  each after the caps that block it, in the shortest order greedy nearest-neighbour steps between grasp
+  points find from the best start (``pick_order``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from perception.cap import Caps, cap_wireframe
+
+GripperKind = Literal["suction", "fingers"]
+"""A suction cup takes a cap on the top of its dome; fingers close around its rim."""
+CLEARANCE_REACH_MM = 60.0
+"""Room beyond this around the approach line is not looked for: the clearance reads at most this."""
+OWN_SURFACE = 1.15
+"""A point within this many times a cap's semi-axes of its centre is the cap's own (when the cloud
+comes without per-point cap labels)."""
+BELOW_GRASP_MM = 1.0
+"""Points this far below the grasp point (along the approach) still count against the gripper."""
+
+
+@dataclass(frozen=True)
+class PickConfig:
+    """The gripper and when a cap is worth picking."""
+
+    gripper: GripperKind = "suction"
+    """The gripper: a suction cup on the cap's top, or fingers around its rim."""
+    gripper_diameter_mm: float = 30.0
+    """The suction cup's diameter, or the widest cap the fingers open around."""
+    finger_clearance_mm: float = 8.0
+    """Fingers: the room each needs beside the cap's rim."""
+    max_tilt_deg: float = 30.0
+    """How far from vertical the gripper may come in."""
+    pick_diameter_mm: float = 30.0
+    """Caps narrower than this are left to grow."""
+    min_score: float = 0.5
+    """Caps scored lower than this are not picked."""
+
+    def __post_init__(self):
+        if self.gripper not in ("suction", "fingers"):
+            raise ValueError(f"unknown gripper {self.gripper!r}; choose suction or fingers")
+        if not 0.0 <= self.max_tilt_deg <= 90.0:
+            raise ValueError(f"max_tilt_deg must be 0-90, got {self.max_tilt_deg}")
+        for name in ("gripper_diameter_mm", "pick_diameter_mm"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.finger_clearance_mm < 0:
+            raise ValueError(f"finger_clearance_mm must not be negative, got {self.finger_clearance_mm}")
+
+
+@dataclass(frozen=True)
+class PickPlan:
+    """The plan over K caps (cap k's id is k), in the caps' frame."""
+
+    ready: np.ndarray
+    """(K,) bool."""
+    grasp: np.ndarray
+    """(K, 3) metres."""
+    approach: np.ndarray
+    """(K, 3) unit vectors, away from the cap."""
+    clearance_mm: np.ndarray
+    """(K,) free room around the approach line, at most ``CLEARANCE_REACH_MM``."""
+    fits: np.ndarray
+    """(K,) bool."""
+    blocks: np.ndarray
+    """(K, K) bool: ``blocks[j, i]`` when cap j lies over cap i's approach (i waits for j)."""
+    order: tuple[int, ...]
+    """The caps to pick, in order."""
+    travel_m: float
+    """Length of the path through the grasp points in ``order``."""
+
+    def blocked_by(self, cap: int) -> list[int]:
+        return np.flatnonzero(self.blocks[:, cap]).tolist()
+
+    def to_document(self) -> dict:
+        """The plan as the detection document's ``"plan"``: the order, the path's length and one entry
+        per cap (``id`` as in ``"mushrooms"``; ``order`` is its place in the order, null when it is not
+        picked)."""
+        place = {cap: k for k, cap in enumerate(self.order)}
+        caps = [{"id": k, "ready": bool(self.ready[k]), "grasp": self.grasp[k].tolist(),
+                 "approach": self.approach[k].tolist(), "clearance_mm": float(self.clearance_mm[k]),
+                 "fits": bool(self.fits[k]), "blocked_by": self.blocked_by(k), "order": place.get(k)}
+                for k in range(len(self.ready))]
+        return {"order": list(self.order), "travel_m": float(self.travel_m), "caps": caps}
+
+
+def plan_picks(caps: Caps, points: np.ndarray, config: PickConfig = PickConfig(),
+               up: np.ndarray = np.array([0.0, 0.0, 1.0]), point_labels: np.ndarray | None = None) -> PickPlan:
+    """The pick plan of ``caps`` on a cloud ``points`` (N, 3) in the same frame (metres), ``up`` the bed's
+    normal there; ``point_labels`` (N,) gives each point's cap (-1: none) when the detector says so."""
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    count = len(caps)
+    if count == 0:
+        empty = np.zeros((0, 3))
+        return PickPlan(np.zeros(0, bool), empty, empty, np.zeros(0), np.zeros(0, bool), np.zeros((0, 0), bool),
+                        (), 0.0)
+    radii_mm = 1000.0 * caps.radii
+    ready = (2 * radii_mm >= config.pick_diameter_mm) & (caps.score_array() >= config.min_score)
+    approach = tilted_toward(caps.axes, up, np.radians(config.max_tilt_deg))
+    on_top = config.gripper == "suction"
+    grasp = caps.centers + (caps.scales[:, 2:3] * caps.axes if on_top else 0.0)
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    blocks = lines_through_domes(caps, grasp, approach)
+    clearance = clearances_mm(caps, points, point_owners(caps, points, point_labels), grasp, approach, blocks)
+    if on_top:
+        gripper_radius = np.full(count, config.gripper_diameter_mm / 2)
+        fits = clearance >= gripper_radius
+    else:
+        fits = (clearance >= radii_mm + config.finger_clearance_mm) & (2 * radii_mm <= config.gripper_diameter_mm)
+    pickable = can_be_picked(ready & fits, blocks)
+    order = pick_order(grasp, blocks, pickable)
+    travel = float(np.linalg.norm(np.diff(grasp[list(order)], axis=0), axis=1).sum()) if len(order) > 1 else 0.0
+    return PickPlan(ready, grasp, approach, clearance, fits, blocks, order, travel)
+
+
+def tilted_toward(axes: np.ndarray, up: np.ndarray, max_tilt: float) -> np.ndarray:
+    """Unit ``axes`` (K, 3) turned toward ``up`` in the plane they span with it, so that none leans
+    more than ``max_tilt`` radians from it; those within the limit stay as they are."""
+    axes = axes / np.linalg.norm(axes, axis=1, keepdims=True)
+    cosine = np.clip(axes @ up, -1.0, 1.0)
+    side = axes - cosine[:, None] * up
+    length = np.linalg.norm(side, axis=1, keepdims=True)
+    side = np.divide(side, length, out=np.zeros_like(side), where=length > 1e-12)
+    clamped = np.cos(max_tilt) * up + np.sin(max_tilt) * side
+    return np.where((np.arccos(cosine) > max_tilt)[:, None], clamped, axes)
+
+
+def point_owners(caps: Caps, points: np.ndarray, point_labels: np.ndarray | None) -> np.ndarray:
+    """(N,) the cap each cloud point belongs to, -1 for none: ``point_labels`` when the detector gives
+    them, else the cap whose ellipsoid, grown by ``OWN_SURFACE``, holds the point."""
+    if point_labels is not None:
+        return np.asarray(point_labels, np.int64)
+    from scipy.spatial import cKDTree
+
+    owners = np.full(len(points), -1, np.int64)
+    if len(points) == 0:
+        return owners
+    near = cKDTree(points).query_ball_point(caps.centers, r=OWN_SURFACE * caps.scales.max(1))
+    sizes = np.fromiter((len(found) for found in near), np.int64, len(caps))
+    cap_index = np.repeat(np.arange(len(caps)), sizes)
+    point_index = np.concatenate([np.asarray(found, np.int64) for found in near])
+    local = np.einsum("kyx,ky->kx", caps.rotations[cap_index], points[point_index] - caps.centers[cap_index])
+    inside = np.square(local / caps.scales[cap_index]).sum(1) <= OWN_SURFACE ** 2
+    owners[point_index[inside]] = cap_index[inside]
+    return owners
+
+
+def clearances_mm(caps: Caps, points: np.ndarray, owners: np.ndarray, grasp: np.ndarray, approach: np.ndarray,
+                  blocks: np.ndarray) -> np.ndarray:
+    """Per cap, the distance (mm) from its approach line (from just below the grasp point up) to the
+    nearest obstacle, at most ``CLEARANCE_REACH_MM``: a cloud point, or a point of another cap's dome (its
+    rim and two meridians). The cap's own points do not count, nor those of the caps it waits for
+    (``blocks``), which are gone when its turn comes."""
+    from scipy.spatial import cKDTree
+
+    count = len(caps)
+    domes = cap_wireframe(caps.centers, caps.rotations, caps.scales)
+    obstacles = np.concatenate([points, domes.reshape(-1, 3)])
+    owner = np.concatenate([owners, np.repeat(np.arange(count), domes.shape[1])])
+    reach, below = CLEARANCE_REACH_MM / 1000.0, BELOW_GRASP_MM / 1000.0
+    # the candidates of a cap: within reach of the middle of its line's stretch as tall as the reach
+    near = cKDTree(obstacles).query_ball_point(grasp + approach * reach / 2, r=reach * np.sqrt(1.25))
+    sizes = np.fromiter((len(found) for found in near), np.int64, count)
+    cap_index = np.repeat(np.arange(count), sizes)
+    obstacle_index = np.concatenate([np.asarray(found, np.int64) for found in near])
+    offset = obstacles[obstacle_index] - grasp[cap_index]
+    along = np.einsum("ij,ij->i", offset, approach[cap_index])
+    across = np.linalg.norm(offset - along[:, None] * approach[cap_index], axis=1)
+    holder = owner[obstacle_index]
+    gone = (holder == cap_index) | ((holder >= 0) & blocks[np.maximum(holder, 0), cap_index])
+    counted = ~gone & (along >= -below) & (along <= reach)
+    clearance = np.full(count, reach)
+    np.minimum.at(clearance, cap_index[counted], across[counted])
+    return 1000.0 * clearance
+
+
+def lines_through_domes(caps: Caps, grasp: np.ndarray, approach: np.ndarray) -> np.ndarray:
+    """(K, K) bool: ``[j, i]`` when the line from cap i's grasp point along its approach passes through
+    cap j's dome (the upper half of its ellipsoid) above the grasp point, i != j."""
+    # each line in each cap's frame, scaled so that the cap's ellipsoid is the unit sphere: |o + t d| = 1
+    origin = np.einsum("jyx,jay->jax", caps.rotations, grasp[None] - caps.centers[:, None]) / caps.scales[:, None]
+    direction = np.einsum("jyx,ay->jax", caps.rotations, approach) / caps.scales[:, None]
+    a = np.einsum("jax,jax->ja", direction, direction)
+    b = 2 * np.einsum("jax,jax->ja", origin, direction)
+    c = np.einsum("jax,jax->ja", origin, origin) - 1.0
+    discriminant = b * b - 4 * a * c
+    root = np.sqrt(np.clip(discriminant, 0.0, None))
+    hits = np.zeros(a.shape, bool)
+    for sign in (-1.0, 1.0):
+        t = (-b + sign * root) / (2 * a)
+        hits |= (discriminant > 0) & (t > 0) & (origin[..., 2] + t * direction[..., 2] >= 0)
+    np.fill_diagonal(hits, False)
+    return hits
+
+
+def can_be_picked(candidates: np.ndarray, blocks: np.ndarray) -> np.ndarray:
+    """The ``candidates`` that can be taken one after another, each once every cap over it is gone: not
+    those waiting for a cap that is no candidate, nor caps that lie over each other in a ring."""
+    picked = np.zeros(len(candidates), bool)
+    while True:
+        free = candidates & ~picked & ~(blocks & ~picked[:, None]).any(0)
+        if not free.any():
+            return picked
+        picked |= free
+
+
+def pick_order(grasp: np.ndarray, blocks: np.ndarray, pickable: np.ndarray) -> tuple[int, ...]:
+    """The pickable caps in an order where each comes after every cap that blocks it, short in travel:
+    from every start at once, each path steps to the nearest cap whose blockers are all taken; the
+    shortest path wins."""
+    caps = np.flatnonzero(pickable)
+    if len(caps) == 0:
+        return ()
+    points = grasp[caps]
+    distance = np.linalg.norm(points[:, None] - points[None], axis=2)
+    waits = blocks[np.ix_(caps, caps)]  # waits[j, i]: i waits for j
+    free = ~waits.any(0)
+    starts = np.flatnonzero(free)
+    paths = np.zeros((len(starts), len(caps)), np.int64)
+    paths[:, 0] = starts
+    taken = np.zeros((len(starts), len(caps)), bool)
+    taken[np.arange(len(starts)), starts] = True
+    length = np.zeros(len(starts))
+    for step in range(1, len(caps)):
+        # a cap is open once every cap it waits for is taken
+        open_ = ~taken & ~(waits[None] & ~taken[:, :, None]).any(1)
+        here = paths[:, step - 1]
+        cost = np.where(open_, distance[here], np.inf)
+        nearest = cost.argmin(1)
+        length += cost[np.arange(len(starts)), nearest]
+        paths[:, step] = nearest
+        taken[np.arange(len(starts)), nearest] = True
+    best = int(np.argmin(length))
+    return tuple(int(caps[k]) for k in paths[best])
