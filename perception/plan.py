@@ -4,7 +4,7 @@ between the neighbours, which caps wait for others, and the order to take them i
 Everything is computed for all caps at once from the detections and the fused cloud, in the caps'
 frame, with ``up`` the bed's normal in that frame:
 
-- ``ready``: the cap is as wide as ``PickConfig.pick_diameter_mm`` and scored at least ``min_score``.
+- ``ready``: the cap is as wide as ``PickConfig.pick_diameter_mm`` and scored at least ``ready_score``.
 - ``grasp`` and ``approach``: a suction cup takes a cap at the top of its dome, fingers at its rim (the
   cap's wide base); the gripper comes along ``approach`` (a unit vector pointing away from the cap, the
   way the gripper moves back out), the cap's axis turned toward ``up`` as far as ``max_tilt_deg`` asks.
@@ -22,11 +22,12 @@ frame, with ``up`` the bed's normal in that frame:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
 
+from common.geometry import transform_points
 from perception.cap import Caps, cap_wireframe
 
 GripperKind = Literal["suction", "fingers"]
@@ -54,7 +55,7 @@ class PickConfig:
     """How far from vertical the gripper may come in."""
     pick_diameter_mm: float = 30.0
     """Caps narrower than this are left to grow."""
-    min_score: float = 0.5
+    ready_score: float = 0.5
     """Caps scored lower than this are not picked."""
 
     def __post_init__(self):
@@ -90,6 +91,11 @@ class PickPlan:
     travel_m: float
     """Length of the path through the grasp points in ``order``."""
 
+    def moved(self, T_frame_caps: np.ndarray) -> "PickPlan":
+        """The same plan in another frame (a rigid 4x4): grasp points and approaches move."""
+        return replace(self, grasp=transform_points(T_frame_caps, self.grasp),
+                       approach=self.approach @ T_frame_caps[:3, :3].T)
+
     def blocked_by(self, cap: int) -> list[int]:
         return np.flatnonzero(self.blocks[:, cap]).tolist()
 
@@ -105,6 +111,13 @@ class PickPlan:
         return {"order": list(self.order), "travel_m": float(self.travel_m), "caps": caps}
 
 
+def plan_of_result(result, bed_points: np.ndarray, config: PickConfig, T_frame_bed: np.ndarray) -> dict:
+    """The detection document's ``"plan"`` for a ``perception.detect.SceneResult`` in the bed frame (its
+    cloud ``bed_points``), given in the frame ``T_frame_bed`` puts the caps in."""
+    plan = plan_picks(result.caps, bed_points, config, point_labels=result.point_labels)
+    return plan.moved(T_frame_bed).to_document()
+
+
 def plan_picks(caps: Caps, points: np.ndarray, config: PickConfig = PickConfig(),
                up: np.ndarray = np.array([0.0, 0.0, 1.0]), point_labels: np.ndarray | None = None) -> PickPlan:
     """The pick plan of ``caps`` on a cloud ``points`` (N, 3) in the same frame (metres), ``up`` the bed's
@@ -116,7 +129,7 @@ def plan_picks(caps: Caps, points: np.ndarray, config: PickConfig = PickConfig()
         return PickPlan(np.zeros(0, bool), empty, empty, np.zeros(0), np.zeros(0, bool), np.zeros((0, 0), bool),
                         (), 0.0)
     radii_mm = 1000.0 * caps.radii
-    ready = (2 * radii_mm >= config.pick_diameter_mm) & (caps.score_array() >= config.min_score)
+    ready = (2 * radii_mm >= config.pick_diameter_mm) & (caps.score_array() >= config.ready_score)
     approach = tilted_toward(caps.axes, up, np.radians(config.max_tilt_deg))
     on_top = config.gripper == "suction"
     grasp = caps.centers + (caps.scales[:, 2:3] * caps.axes if on_top else 0.0)
@@ -147,13 +160,12 @@ def tilted_toward(axes: np.ndarray, up: np.ndarray, max_tilt: float) -> np.ndarr
 
 
 def point_owners(caps: Caps, points: np.ndarray, point_labels: np.ndarray | None) -> np.ndarray:
-    """(N,) the cap each cloud point belongs to, -1 for none: ``point_labels`` when the detector gives
-    them, else the cap whose ellipsoid, grown by ``OWN_SURFACE``, holds the point."""
-    if point_labels is not None:
-        return np.asarray(point_labels, np.int64)
+    """(N,) the cap each cloud point belongs to, -1 for none: its label when the detector gives one, else
+    the cap whose ellipsoid, grown by ``OWN_SURFACE``, holds the point (a dome's edge the detector left
+    unlabelled is still the cap's own)."""
     from scipy.spatial import cKDTree
 
-    owners = np.full(len(points), -1, np.int64)
+    owners = np.full(len(points), -1, np.int64) if point_labels is None else np.asarray(point_labels, np.int64).copy()
     if len(points) == 0:
         return owners
     near = cKDTree(points).query_ball_point(caps.centers, r=OWN_SURFACE * caps.scales.max(1))
@@ -161,7 +173,7 @@ def point_owners(caps: Caps, points: np.ndarray, point_labels: np.ndarray | None
     cap_index = np.repeat(np.arange(len(caps)), sizes)
     point_index = np.concatenate([np.asarray(found, np.int64) for found in near])
     local = np.einsum("kyx,ky->kx", caps.rotations[cap_index], points[point_index] - caps.centers[cap_index])
-    inside = np.square(local / caps.scales[cap_index]).sum(1) <= OWN_SURFACE ** 2
+    inside = (np.square(local / caps.scales[cap_index]).sum(1) <= OWN_SURFACE ** 2) & (owners[point_index] < 0)
     owners[point_index[inside]] = cap_index[inside]
     return owners
 

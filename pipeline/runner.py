@@ -22,6 +22,7 @@ from capture.frames import DepthFrame
 from capture.source import Source
 from fusion.cloud import FusedCloud, FusionStage, UnitBuilder
 from perception.instances import ClusteringMethod
+from perception.plan import PickConfig
 from pipeline.perception_process import PerceptionProcess
 from pipeline.process import hand_back_freed_memory
 
@@ -42,6 +43,7 @@ class PerceptionStage:
 class RunConfig:
     fusion: FusionStage = field(default_factory=FusionStage)
     perception: PerceptionStage = field(default_factory=PerceptionStage)
+    plan: PickConfig = field(default_factory=PickConfig)
     queue_frames: int = 64
     """Frames that may wait for fusion; a live camera never waits for more room."""
     live: bool = False
@@ -227,6 +229,7 @@ class Runner:
     def _perceive(self) -> None:
         from perception.detect import detect_points, transform_result
         from perception.instances import ClusterConfig
+        from perception.plan import plan_of_result
 
         clustering = ClusterConfig(method=self.config.perception.clustering)
         try:
@@ -243,8 +246,10 @@ class Runner:
                 found = (self._detector.detect(cloud.points, clustering, readings) if self._detector is not None
                          else detect_points(self.model, cloud.points, clustering, readings=readings))
                 result = transform_result(found, cloud.T_world_bed, "world")
+                document = {**result.caps.to_document("world", readings),
+                            "plan": plan_of_result(found, cloud.points, self.config.plan, cloud.T_world_bed)}
                 now = time.perf_counter()
-                detection = Detection(unit, result, result.caps.to_document("world", readings), now - started,
+                detection = Detection(unit, result, document, now - started,
                                       now - unit.last_arrival)
                 self.summary.detections.append(DetectionRecord.of(detection))
                 self.summary.last_detection = detection

@@ -40,7 +40,7 @@ def bed_cloud():
 def test_constructed_bed_by_hand():
     caps = upright_caps(BED)
     plan = plan_picks(caps, bed_cloud(), PickConfig(gripper="suction", gripper_diameter_mm=30.0,
-                                                    pick_diameter_mm=30.0, min_score=0.5))
+                                                    pick_diameter_mm=30.0, ready_score=0.5))
     # diameters 40, 40, 20, 32, 60 mm against 30 mm, all scored 0.9
     assert plan.ready.tolist() == [True, True, False, True, True]
     # suction takes each upright cap at its top, straight down
@@ -123,6 +123,17 @@ def test_the_order_respects_every_blocker_and_is_near_the_shortest():
     # greedy from every start: never shorter than the best, and on average within a quarter of it
     assert min(ratios) >= 1.0 - 1e-12
     assert np.mean(ratios) < 1.25
+
+
+def test_a_moved_plan_moves_its_points_and_directions():
+    plan = plan_picks(upright_caps(BED), bed_cloud())
+    turn = np.eye(4)
+    turn[:3, :3] = cap_rotation(0.3, -0.2)
+    turn[:3, 3] = [1.0, 2.0, 3.0]
+    moved = plan.moved(turn)
+    np.testing.assert_allclose(moved.grasp, plan.grasp @ turn[:3, :3].T + turn[:3, 3])
+    np.testing.assert_allclose(moved.approach, plan.approach @ turn[:3, :3].T)
+    assert moved.order == plan.order
 
 
 def test_an_empty_bed_has_an_empty_plan():

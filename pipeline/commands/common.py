@@ -204,6 +204,24 @@ def add_quiet_flag(parser: argparse.ArgumentParser, what: str = "no progress bar
     parser.add_argument("--quiet", action="store_true", help=what)
 
 
+def add_pick_flags(parser: argparse.ArgumentParser) -> None:
+    """The gripper and the pick size (``perception.plan.PickConfig``), read back by ``pick_config``."""
+    from pipeline.flags import add_config_flags
+
+    add_config_flags(parser, "perception.plan:PickConfig")
+
+
+def pick_config(args: argparse.Namespace):
+    """The ``PickConfig`` of ``add_pick_flags``' flags; values it refuses are a CliError."""
+    from perception.plan import PickConfig
+    from pipeline.flags import config_from_args
+
+    try:
+        return config_from_args(PickConfig, args)
+    except ValueError as error:
+        raise CliError(str(error)) from None
+
+
 # ---- the model and torch
 
 def torch_threads(threads: int | None) -> None:

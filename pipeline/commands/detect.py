@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from pipeline.commands.common import (FILE_READINGS, SHIPPED_ZOOM, CliError, add_model_flag, add_overwrite_flag,
+                                      add_pick_flags, pick_config,
                                       load_model, model_path, parse_readings, parse_zoom, refuse_to_replace,
                                       replace_file, writable_file)
 
@@ -37,6 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "are a bed's; a .npz scene is in metres)")
     parser.add_argument("--bed-frame", action="store_true",
                         help="the cloud is already in the bed frame (z up, origin on the bed plane; checked)")
+    add_pick_flags(parser)
     add_overwrite_flag(parser)
     parser.add_argument("--force", action="store_true",
                         help="detect on a cloud that does not look like a bed (most points off its plane, no unit "
@@ -52,8 +54,10 @@ def run(args: argparse.Namespace) -> int:
     from fusion.bed import not_a_bed, side_with_caps, too_many_caps
     from perception.detect import detect_points, transform_result
     from perception.instances import ClusterConfig
+    from perception.plan import plan_of_result
     from pipeline.clouds import load_cloud
 
+    pick = pick_config(args)
     try:
         cloud = load_cloud(Path(args.cloud), args.units)
     except ValueError as error:
@@ -84,11 +88,12 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as error:
         raise CliError(str(error)) from None
     _refuse_unless_forced(args, too_many_caps(bed_points, len(result.caps)))
+    plan = plan_of_result(result, bed_points, pick, T_input_bed)
     result = transform_result(result, T_input_bed, frame)
     print(f"{len(result.caps)} caps in {args.cloud} ({len(points)} points, frame: {frame}, metres)")
     _print_caps(result, T_input_bed[:3, 2])
     _warn_outside_range(model, bed_points, result, args.cloud)
-    payload = {**result.caps.to_document(frame, args.readings), "T_input_bed": T_input_bed.tolist()}
+    payload = {**result.caps.to_document(frame, args.readings), "plan": plan, "T_input_bed": T_input_bed.tolist()}
     replace_file(out, json.dumps(payload, indent=1))
     if rrd is not None:
         from perception.detect import log_rerun
@@ -174,7 +179,8 @@ def _detect_session(args: argparse.Namespace) -> int:
     source = McapSource(args.cloud)
     try:
         source.open()
-        summary = run_chain(source, model, RunConfig(perception=PerceptionStage(args.method, args.readings)),
+        summary = run_chain(source, model, RunConfig(perception=PerceptionStage(args.method, args.readings),
+                                                      plan=pick_config(args)),
                             Outputs(rrd=rrd, detections=out, name=Path(args.cloud).name, quiet=True),
                             sensors=max(1, len(source.sensor_ids)))
     except (SourceError, ValueError) as error:

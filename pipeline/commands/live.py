@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from pipeline.commands.common import (CAMERAS, STOP_EXIT, CliError, CommandFailed, add_model_flag, add_overwrite_flag,
+                                      add_pick_flags, pick_config,
                                       add_quiet_flag, add_threads_flag, load_model, parse_readings, parse_seed,
                                       parse_threads, positive, refuse_to_replace, torch_threads, writable_file,
                                       written_files)
@@ -46,6 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_flags(parser, "pipeline.sources:VirtualBed", BED_FLAGS, only=tuple(BED_FLAGS))
     add_model_flag(parser)
     add_config_flags(parser, "pipeline.runner:PerceptionStage", PERCEPTION_FLAGS)
+    add_pick_flags(parser)
     add_threads_flag(parser)
     add_quiet_flag(parser, "no line per fused unit")
 
@@ -76,6 +78,7 @@ def run(args: argparse.Namespace) -> int:
     from pipeline.sources import make_source
 
     record, rrd, detections = _checked_outputs(args)
+    pick = pick_config(args)
     rig = None
     if args.rig:
         try:
@@ -91,7 +94,8 @@ def run(args: argparse.Namespace) -> int:
     if args.camera == "virtual" and rig is None:
         rig = Rig(source.source.config.turntable)
     config = config_from_args(RunConfig, args, fusion=FusionStage(rig=rig, window=args.window),
-                              perception=config_from_args(PerceptionStage, args), live=True)
+                              perception=config_from_args(PerceptionStage, args),
+                              plan=pick, live=True)
     outputs = Outputs(record=record, rrd=rrd, detections=detections, spawn=args.spawn, serve=args.serve,
                       name=f"live {args.camera} {time.strftime('%Y-%m-%d %H:%M:%S')}", quiet=args.quiet)
     with graceful_stop() as stop:
