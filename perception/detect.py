@@ -286,11 +286,12 @@ def transform_result(result: SceneResult, T_frame_bed: np.ndarray, frame: str) -
 
 
 def log_rerun(rec, result: SceneResult, points: np.ndarray, entity: str = "world/perception",
-              color=(230, 60, 40)) -> None:
-    """Existence on the points, the collapsed centres, and the caps as ellipsoids and boxes in ``color``."""
+              color=(230, 60, 40), plan: dict | None = None) -> None:
+    """Existence on the points, the collapsed centres, the caps as ellipsoids and boxes in ``color``, and
+    the pick ``plan`` (the document's) as approach arrows."""
     import rerun as rr
 
-    from perception.rerun_log import log_caps
+    from perception.rerun_log import log_caps, log_plan
 
     heat = np.clip(result.point_existence, 0, 1)[:, None]
     colors = (255 * (heat * np.array([0.95, 0.25, 0.15]) + (1 - heat) * np.array([0.45, 0.4, 0.35]))).astype(np.uint8)
@@ -300,3 +301,5 @@ def log_rerun(rec, result: SceneResult, points: np.ndarray, entity: str = "world
     caps = result.caps
     log_caps(rec, f"{entity}/mushrooms", caps.centers, caps.rotations, caps.scales,
              labels=[f"#{k} {2000 * radius:.0f} mm" for k, radius in enumerate(caps.radii)], color=color)
+    if plan is not None:
+        log_plan(rec, f"{entity}/plan", plan)

@@ -134,8 +134,10 @@ def plan_picks(caps: Caps, points: np.ndarray, config: PickConfig = PickConfig()
     on_top = config.gripper == "suction"
     grasp = caps.centers + (caps.scales[:, 2:3] * caps.axes if on_top else 0.0)
     points = np.asarray(points, np.float64).reshape(-1, 3)
+    high = points @ up >= lowest_obstacle(grasp, approach, up)  # the soil under every grasp point has no say
+    points, labels = points[high], None if point_labels is None else np.asarray(point_labels)[high]
     blocks = lines_through_domes(caps, grasp, approach)
-    clearance = clearances_mm(caps, points, point_owners(caps, points, point_labels), grasp, approach, blocks)
+    clearance = clearances_mm(caps, points, labels, grasp, approach, blocks)
     if on_top:
         gripper_radius = np.full(count, config.gripper_diameter_mm / 2)
         fits = clearance >= gripper_radius
@@ -145,6 +147,18 @@ def plan_picks(caps: Caps, points: np.ndarray, config: PickConfig = PickConfig()
     order = pick_order(grasp, blocks, pickable)
     travel = float(np.linalg.norm(np.diff(grasp[list(order)], axis=0), axis=1).sum()) if len(order) > 1 else 0.0
     return PickPlan(ready, grasp, approach, clearance, fits, blocks, order, travel)
+
+
+def lowest_obstacle(grasp: np.ndarray, approach: np.ndarray, up: np.ndarray) -> float:
+    """The height along ``up`` below which no point can be within ``clearances_mm``'s reach of any
+    approach line: a point counts from ``BELOW_GRASP_MM`` under the grasp point along the approach, and a
+    tilted line reaches lower beside it, by at most its tilt's sine times the reach's diagonal."""
+    cosine = approach @ up
+    if cosine.min() < 1e-6:
+        return -np.inf
+    reach, below = CLEARANCE_REACH_MM / 1000.0, BELOW_GRASP_MM / 1000.0
+    sine = np.sqrt(np.clip(1.0 - cosine ** 2, 0.0, None))
+    return float((grasp @ up - (below + sine * reach * np.sqrt(2.0)) / cosine).min())
 
 
 def tilted_toward(axes: np.ndarray, up: np.ndarray, max_tilt: float) -> np.ndarray:
@@ -159,40 +173,40 @@ def tilted_toward(axes: np.ndarray, up: np.ndarray, max_tilt: float) -> np.ndarr
     return np.where((np.arccos(cosine) > max_tilt)[:, None], clamped, axes)
 
 
-def point_owners(caps: Caps, points: np.ndarray, point_labels: np.ndarray | None) -> np.ndarray:
+def point_owners(caps: Caps, points: np.ndarray, point_labels: np.ndarray | None, tree) -> np.ndarray:
     """(N,) the cap each cloud point belongs to, -1 for none: its label when the detector gives one, else
     the cap whose ellipsoid, grown by ``OWN_SURFACE``, holds the point (a dome's edge the detector left
-    unlabelled is still the cap's own)."""
-    from scipy.spatial import cKDTree
-
+    unlabelled is still the cap's own). ``tree`` is a KD-tree whose first N points are ``points``."""
     owners = np.full(len(points), -1, np.int64) if point_labels is None else np.asarray(point_labels, np.int64).copy()
-    if len(points) == 0:
-        return owners
-    near = cKDTree(points).query_ball_point(caps.centers, r=OWN_SURFACE * caps.scales.max(1))
+    near = tree.query_ball_point(caps.centers, r=OWN_SURFACE * caps.scales.max(1))
     sizes = np.fromiter((len(found) for found in near), np.int64, len(caps))
     cap_index = np.repeat(np.arange(len(caps)), sizes)
     point_index = np.concatenate([np.asarray(found, np.int64) for found in near])
+    from_cloud = point_index < len(points)
+    cap_index, point_index = cap_index[from_cloud], point_index[from_cloud]
     local = np.einsum("kyx,ky->kx", caps.rotations[cap_index], points[point_index] - caps.centers[cap_index])
     inside = (np.square(local / caps.scales[cap_index]).sum(1) <= OWN_SURFACE ** 2) & (owners[point_index] < 0)
     owners[point_index[inside]] = cap_index[inside]
     return owners
 
 
-def clearances_mm(caps: Caps, points: np.ndarray, owners: np.ndarray, grasp: np.ndarray, approach: np.ndarray,
-                  blocks: np.ndarray) -> np.ndarray:
+def clearances_mm(caps: Caps, points: np.ndarray, point_labels: np.ndarray | None, grasp: np.ndarray,
+                  approach: np.ndarray, blocks: np.ndarray) -> np.ndarray:
     """Per cap, the distance (mm) from its approach line (from just below the grasp point up) to the
     nearest obstacle, at most ``CLEARANCE_REACH_MM``: a cloud point, or a point of another cap's dome (its
-    rim and two meridians). The cap's own points do not count, nor those of the caps it waits for
-    (``blocks``), which are gone when its turn comes."""
+    rim and two meridians). The cap's own points do not count (``point_owners``), nor those of the caps
+    it waits for (``blocks``), which are gone when its turn comes."""
     from scipy.spatial import cKDTree
 
     count = len(caps)
     domes = cap_wireframe(caps.centers, caps.rotations, caps.scales)
     obstacles = np.concatenate([points, domes.reshape(-1, 3)])
-    owner = np.concatenate([owners, np.repeat(np.arange(count), domes.shape[1])])
+    tree = cKDTree(obstacles, balanced_tree=False, compact_nodes=False)  # built once, queried twice
+    owner = np.concatenate([point_owners(caps, points, point_labels, tree),
+                            np.repeat(np.arange(count), domes.shape[1])])
     reach, below = CLEARANCE_REACH_MM / 1000.0, BELOW_GRASP_MM / 1000.0
     # the candidates of a cap: within reach of the middle of its line's stretch as tall as the reach
-    near = cKDTree(obstacles).query_ball_point(grasp + approach * reach / 2, r=reach * np.sqrt(1.25))
+    near = tree.query_ball_point(grasp + approach * reach / 2, r=reach * np.sqrt(1.25))
     sizes = np.fromiter((len(found) for found in near), np.int64, count)
     cap_index = np.repeat(np.arange(count), sizes)
     obstacle_index = np.concatenate([np.asarray(found, np.int64) for found in near])

@@ -63,10 +63,12 @@ HIDDEN_BY_DEFAULT = ("world/perception/existence", "world/perception/centers")
 
 
 def default_blueprint(camera_ids: list[str] = (), T_world_bed: np.ndarray | None = None,
-                      extent: float = 0.5) -> rr.BlueprintLike:
+                      extent: float = 0.5, stats: bool = True,
+                      hidden: tuple[str, ...] = HIDDEN_BY_DEFAULT) -> rr.BlueprintLike:
     """The bed in 3D, filling its view from above and in front (known once the bed frame is, from
     ``T_world_bed`` and the bed's ``extent`` in metres); each camera's depth with the caps over it;
-    per-stage latency and the counts (caps, dropped work) over time."""
+    with ``stats``, per-stage latency and the counts (caps, dropped work) over time. The ``hidden``
+    entities start switched off."""
     import rerun.blueprint as rrb
 
     eye = None
@@ -76,13 +78,15 @@ def default_blueprint(camera_ids: list[str] = (), T_world_bed: np.ndarray | None
         position = target + T[:3, :3] @ np.array([0.0, -0.7, 1.0]) * extent
         eye = rrb.EyeControls3D(position=position, look_target=target, eye_up=T[:3, 2])
     # each depth image would also show in 3D as a cloud of its own, over the fused one
-    hidden = [*HIDDEN_BY_DEFAULT, *(f"world/camera/{cid}/depth" for cid in camera_ids)]
+    hidden = [*hidden, *(f"world/camera/{cid}/depth" for cid in camera_ids)]
     bed = rrb.Spatial3DView(origin="world", name="bed", eye_controls=eye,
                             overrides={path: rrb.EntityBehavior(visible=False) for path in hidden})
     cameras = [rrb.Spatial2DView(origin=f"world/camera/{cid}", name=f"camera {cid}") for cid in camera_ids]
     plots = [rrb.TimeSeriesView(origin="stats/latency", name="latency per stage (ms)"),
              rrb.TimeSeriesView(origin="stats/counts", name="caps and dropped work")]
-    side = rrb.Vertical(*cameras[:2], *plots) if cameras else rrb.Vertical(*plots)
+    if not stats and not cameras:
+        return rrb.Blueprint(bed, collapse_panels=True)
+    side = rrb.Vertical(*cameras[:2], *(plots if stats else ()))
     # following: a recording opens on its newest unit and caps, and a live run's view keeps up with it
     time = rrb.TimePanel(state="collapsed", timeline="frame", play_state="following")
     return rrb.Blueprint(rrb.Horizontal(bed, side, column_shares=[3, 2]), time, collapse_panels=True)

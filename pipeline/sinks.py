@@ -57,7 +57,8 @@ class RerunSink(Sink):
 
         unit = detection.unit
         self._time(unit.last_frame_index, unit.last_frame_ns)
-        log_rerun(self.rec, detection.result, unit.cloud.world_points, color=CAP_COLOR)
+        log_rerun(self.rec, detection.result, unit.cloud.world_points, color=CAP_COLOR,
+                  plan=detection.document.get("plan"))
         caps = detection.result.caps
         for sensor, frame in list(self._views.items()):
             if frame.T_world_camera is not None:

@@ -97,10 +97,12 @@ def run(args: argparse.Namespace) -> int:
     replace_file(out, json.dumps(payload, indent=1))
     if rrd is not None:
         from perception.detect import log_rerun
-        from pipeline.rerun_sink import rerun_stream
+        from pipeline.rerun_sink import default_blueprint, rerun_stream
 
-        with rerun_stream(rrd) as rec:
-            log_rerun(rec, result, points)
+        extent = float(np.ptp(bed_points[:, :2], axis=0).max())
+        with rerun_stream(rrd, blueprint=default_blueprint((), T_input_bed, extent, stats=False,
+                                                            hidden=("world/perception/centers",))) as rec:
+            log_rerun(rec, result, points, plan=plan)
     print(f"detections: {out}" + (f"  rerun: {rrd}" if rrd else ""))
     return 0
 
