@@ -1,9 +1,10 @@
 """Regression check of a replay: the new detections against those a session recorded, unit by unit,
-caps matched by centre, within tolerances on centre, axis and radius."""
+caps matched by centre, within tolerances on centre, axis and radius; where both carry a pick plan, the
+matched caps' readiness and the order they are picked in."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -32,11 +33,23 @@ class CapDiff:
 
 
 @dataclass(frozen=True)
+class PlanDiff:
+    """A change of the pick plan in one unit: a matched cap's ``ready``, or the ``order`` (in the new
+    document's ids, the expected order read through the matched caps)."""
+
+    unit: int
+    what: str
+    expected: object
+    new: object
+
+
+@dataclass(frozen=True)
 class CheckReport:
     diffs: list[CapDiff]
     units_expected: int
     units_new: int
     tolerances: Tolerances
+    plan_diffs: list[PlanDiff] = field(default_factory=list)
 
     @property
     def regressions(self) -> list[CapDiff]:
@@ -44,7 +57,7 @@ class CheckReport:
 
     @property
     def passed(self) -> bool:
-        return not self.regressions and self.units_expected == self.units_new
+        return not self.regressions and not self.plan_diffs and self.units_expected == self.units_new
 
     def table(self, everything: bool = False) -> str:
         """The per-cap diff (only what changed unless ``everything``) and a one-line verdict."""
@@ -58,6 +71,7 @@ class CheckReport:
                 cells += [f"{v:>8.2f}" if v is not None else f"{'-':>8}" for v in (d.axis_deg, d.radius_pct)]
                 lines.append(f"{d.unit:>4} {'-' if d.expected_id is None else d.expected_id:>8} "
                              f"{'-' if d.new_id is None else d.new_id:>4} {d.status:<8} " + " ".join(cells))
+        lines += [f"{d.unit:>4} plan {d.what}: expected {d.expected}, new {d.new}" for d in self.plan_diffs]
         caps = sum(d.expected_id is not None for d in self.diffs)
         counts = {s: sum(d.status == s for d in self.diffs) for s in ("ok", "changed", "lost", "gained")}
         units = "" if self.units_expected == self.units_new else \
@@ -65,7 +79,8 @@ class CheckReport:
         verdict = "PASS" if self.passed else "FAIL"
         lines.append(f"check {verdict}: {caps} expected caps in {self.units_expected} units: {counts['ok']} within "
                      f"tolerance, {counts['changed']} changed, {counts['lost']} lost, {counts['gained']} gained "
-                     f"(tolerances: {self.tolerances.describe()}){units}")
+                     f"(tolerances: {self.tolerances.describe()}){units}"
+                     + (f"; {len(self.plan_diffs)} pick plan changes" if self.plan_diffs else ""))
         return "\n".join(lines)
 
 
@@ -106,9 +121,26 @@ def match_caps(expected: dict, new: dict, unit: int, tolerances: Tolerances) -> 
 def compare(expected: list[dict], new: list[dict], tolerances: Tolerances = Tolerances()) -> CheckReport:
     """Unit k of ``new`` against unit k of ``expected``; a unit only one side has counts all its caps
     as lost or gained."""
-    diffs = []
+    diffs, plan_diffs = [], []
     for unit in range(max(len(expected), len(new))):
         empty = {"mushrooms": []}
-        diffs += match_caps(expected[unit] if unit < len(expected) else empty,
-                            new[unit] if unit < len(new) else empty, unit, tolerances)
-    return CheckReport(diffs, len(expected), len(new), tolerances)
+        before, after = expected[unit] if unit < len(expected) else empty, new[unit] if unit < len(new) else empty
+        unit_diffs = match_caps(before, after, unit, tolerances)
+        diffs += unit_diffs
+        if "plan" in before and "plan" in after:
+            plan_diffs += compare_plans(before["plan"], after["plan"], unit_diffs, unit)
+    return CheckReport(diffs, len(expected), len(new), tolerances, plan_diffs)
+
+
+def compare_plans(expected: dict, new: dict, pairs: list[CapDiff], unit: int) -> list[PlanDiff]:
+    """What changed between two pick plans of one unit whose caps ``pairs`` matched: a matched cap that
+    became ready or stopped being ready, and the order when it is not the same caps in the same turn."""
+    ready_before = {cap["id"]: cap["ready"] for cap in expected["caps"]}
+    ready_after = {cap["id"]: cap["ready"] for cap in new["caps"]}
+    matched = {d.expected_id: d.new_id for d in pairs if d.expected_id is not None and d.new_id is not None}
+    changes = [PlanDiff(unit, f"cap {new_id} ready", ready_before.get(old_id), ready_after.get(new_id))
+               for old_id, new_id in matched.items() if ready_before.get(old_id) != ready_after.get(new_id)]
+    order_before = [matched.get(cap) for cap in expected["order"]]
+    if order_before != list(new["order"]):
+        changes.append(PlanDiff(unit, "order", order_before, list(new["order"])))
+    return changes

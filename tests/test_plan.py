@@ -146,3 +146,27 @@ def test_bad_gripper_settings_are_refused():
         PickConfig(gripper="claw")
     with pytest.raises(ValueError, match="max_tilt_deg"):
         PickConfig(max_tilt_deg=120.0)
+
+
+def test_the_replay_check_reports_readiness_and_order_changes_of_matched_caps():
+    from pipeline.check import compare
+
+    caps = upright_caps(BED)
+    document = {**caps.to_document("bed", 1), "plan": plan_picks(caps, bed_cloud()).to_document()}
+    assert compare([document], [document]).passed
+    # the new run finds the same caps in another order of ids, and cap C (20 mm) grown past the pick size
+    turned = [4, 3, 2, 1, 0]
+    grown = upright_caps([BED[k] if k != C else (*BED[C][:3], 0.02) for k in turned])
+    again = {**grown.to_document("bed", 1), "plan": plan_picks(grown, bed_cloud()).to_document()}
+    report = compare([document], [again])
+    new_c = turned.index(C)
+    assert [d.status for d in report.diffs if d.expected_id == C] == ["changed"]  # its radius
+    ready = [d for d in report.plan_diffs if d.what.endswith("ready")]
+    assert [(d.what, d.expected, d.new) for d in ready] == [(f"cap {new_c} ready", False, True)]
+    # C now in the order: the expected order (A, E, D) read in the new ids differs from the new one
+    order = [d for d in report.plan_diffs if d.what == "order"]
+    assert order and order[0].expected == [turned.index(A), turned.index(E), turned.index(D)]
+    assert new_c in order[0].new and not report.passed
+    assert "pick plan changes" in report.table()
+    # documents without a plan (sessions recorded before it) are compared on caps alone
+    assert compare([caps.to_document("bed", 1)], [document]).passed
