@@ -211,77 +211,23 @@ class _WriteFailures(logging.Handler):
             self.first = record.getMessage()
 
 
-class McapRecorder:
-    """Writes DepthFrames (and JSON, point clouds) to an MCAP file with foxglove-sdk.
+class SessionChannels:
+    """The session's topics as foxglove-sdk channels of one Context: every message goes to whatever the
+    context feeds (the session MCAP, a live WebSocket server, or both), as it is written."""
 
-    The file is written as ``<path>.partial`` and renamed to ``path`` by ``close()``, which always
-    finalises (summary and footer) first, also when leaving ``with`` on KeyboardInterrupt or any other
-    exception, and holds off SIGINT/SIGTERM while doing so. A process killed outright (SIGKILL, power
-    loss) leaves only the ``.partial`` file, which ``recover_recording`` turns into a valid MCAP.
-
-    A write raises RecordingError when the disk holding the file has less room than one more chunk
-    and the summary need (``room_needed``), so the recording stops while it can still be finalised;
-    and when a write failed all the same (another process filled the disk), leaving the ``.partial``
-    file for ``recover_recording``.
-    """
-
-    def __init__(self, path: str | os.PathLike, compression: str | None = "zstd", *,
-                 chunk_size: int = 1 << 20, overwrite: bool = False) -> None:
-        """``compression``: "zstd", "lz4" or None; ``chunk_size``: uncompressed bytes per chunk, which is
-        also about how much a hard kill can lose."""
-        if compression not in _COMPRESSION:
-            raise ValueError(f"compression must be 'zstd', 'lz4' or None, got {compression!r}")
-        self.path = Path(path)
-        self.partial_path = self.path.with_name(self.path.name + ".partial")
-        if self.path.exists() and not overwrite:
-            raise FileExistsError(f"{self.path} exists (pass overwrite=True to replace it)")
-        if self.partial_path.exists() and not overwrite:
-            raise FileExistsError(f"{self.partial_path} exists: an earlier recording was interrupted; recover it "
-                                  f"(mushroom-pose recover), move it, or overwrite it")
-        self.partial_path.unlink(missing_ok=True)
+    def __init__(self, context: foxglove.Context | None = None) -> None:
         self.frames = 0
-        self._messages = 0  # whole frames, documents and clouds: with none yet, an error discards the file
-        self._context = foxglove.Context()
-        options = MCAPWriteOptions(compression=_COMPRESSION[compression], chunk_size=chunk_size)
-        try:
-            self._writer = foxglove.open_mcap(self.partial_path, context=self._context, writer_options=options)
-        except OSError as error:
-            raise type(error)(f"cannot create {self.partial_path}: {error}") from None
+        self._messages = 0  # whole frames, documents and clouds
+        self._context = context if context is not None else foxglove.Context()
         self._channels: dict[str, Any] = {}
         self._last_timestamp: dict[str, int] = {}
         self._closed = False
-        self._chunk_size = chunk_size
-        self._failures = _WriteFailures()
-        self._foxglove_log = logging.getLogger("foxglove")
-        self._foxglove_log.addHandler(self._failures)
-        self._foxglove_log.propagate = False
-
-    def room_needed(self, message_bytes: int) -> int:
-        """Free bytes the disk must keep for a message of ``message_bytes``: the chunk being filled may
-        be flushed with it, and closing writes the summary (indexes and statistics)."""
-        return 2 * self._chunk_size + 2 * message_bytes + (1 << 20)
-
-    def _written(self, message_bytes: int) -> None:
-        """After a write: a RecordingError if it failed, or if the disk has no room for the next one."""
-        if self._failures.first is not None:
-            raise RecordingError(f"writing {self.partial_path} failed ({self._failures.first})")
-        stat = os.statvfs(self.partial_path.parent)
-        free = stat.f_bavail * stat.f_frsize
-        if free < self.room_needed(message_bytes):
-            raise RecordingError(f"the disk holding {self.partial_path.parent} is full ({free / 1e6:.1f} MB free, "
-                                 f"a recording keeps {self.room_needed(message_bytes) / 1e6:.1f} MB in hand)")
-
-    def __enter__(self) -> "McapRecorder":
-        return self
-
-    def __exit__(self, kind: Any, *exc: Any) -> None:
-        self.close(discard=kind is not None and not self._messages)
 
     def _channel(self, topic: str, kind: type, **kwargs: Any) -> Any:
         channel = self._channels.get(topic)
         if channel is None:
             if self._closed:
-                raise ValueError(f"{self.path}: the recorder is closed")
+                raise ValueError("the session's channels are closed")
             channel = self._channels[topic] = kind(topic, context=self._context, **kwargs)
         elif not isinstance(channel, kind):
             raise ValueError(f"{topic} already carries {type(channel).__name__} messages")
@@ -386,6 +332,102 @@ class McapRecorder:
         self._channel(topic, SceneUpdateChannel).log(update, log_time=int(log_time_ns))
         self._messages += 1
         self._written(0)
+
+    def _written(self, message_bytes: int) -> None:
+        """After a write: what the sinks of the context need checked (nothing for a server)."""
+
+    def close(self, discard: bool = False) -> None:
+        """Close every channel (a server unadvertises them); safe to call twice."""
+        if not self._closed:
+            self._closed = True
+            for channel in self._channels.values():
+                channel.close()
+
+SERVER_STOP_WAIT_S = 2.0
+"""Seconds a live server's clients get to close when the run ends."""
+
+
+@contextmanager
+def serve_session(host: str, port: int) -> Iterator[tuple[foxglove.Context, int]]:
+    """A foxglove-sdk WebSocket server on ``host``:``port`` (0: any free port) for the session's channels,
+    as the context to write them on and the port it listens on; stopped on leaving. A client that
+    stalls loses its oldest messages, never slows the writer. OSError when the port cannot be bound."""
+    context = foxglove.Context()
+    try:
+        server = foxglove.start_server(name="mushroom-pose", host=host, port=port, context=context)
+    except RuntimeError as error:  # foxglove-sdk: FoxgloveError
+        reason = str(error).split(": ", 1)[-1]
+        raise OSError(f"cannot serve Foxglove on {host}:{port}: {reason}") from None
+    try:
+        yield context, server.port
+    finally:
+        # stop() waits for every client to close gracefully, which one that never reads does not do:
+        # it gets SERVER_STOP_WAIT_S, and the process does not wait for the rest
+        stopping = threading.Thread(target=server.stop, name="foxglove server stop", daemon=True)
+        stopping.start()
+        stopping.join(SERVER_STOP_WAIT_S)
+
+
+class McapRecorder(SessionChannels):
+    """Writes DepthFrames (and JSON, point clouds) to an MCAP file with foxglove-sdk.
+
+    The file is written as ``<path>.partial`` and renamed to ``path`` by ``close()``, which always
+    finalises (summary and footer) first, also when leaving ``with`` on KeyboardInterrupt or any other
+    exception, and holds off SIGINT/SIGTERM while doing so. A process killed outright (SIGKILL, power
+    loss) leaves only the ``.partial`` file, which ``recover_recording`` turns into a valid MCAP.
+
+    A write raises RecordingError when the disk holding the file has less room than one more chunk
+    and the summary need (``room_needed``), so the recording stops while it can still be finalised;
+    and when a write failed all the same (another process filled the disk), leaving the ``.partial``
+    file for ``recover_recording``.
+    """
+
+    def __init__(self, path: str | os.PathLike, compression: str | None = "zstd", *,
+                 chunk_size: int = 1 << 20, overwrite: bool = False, context: foxglove.Context | None = None) -> None:
+        """``compression``: "zstd", "lz4" or None; ``chunk_size``: uncompressed bytes per chunk, which is
+        also about how much a hard kill can lose; ``context``: one a live server publishes as well."""
+        if compression not in _COMPRESSION:
+            raise ValueError(f"compression must be 'zstd', 'lz4' or None, got {compression!r}")
+        self.path = Path(path)
+        self.partial_path = self.path.with_name(self.path.name + ".partial")
+        if self.path.exists() and not overwrite:
+            raise FileExistsError(f"{self.path} exists (pass overwrite=True to replace it)")
+        if self.partial_path.exists() and not overwrite:
+            raise FileExistsError(f"{self.partial_path} exists: an earlier recording was interrupted; recover it "
+                                  f"(mushroom-pose recover), move it, or overwrite it")
+        self.partial_path.unlink(missing_ok=True)
+        super().__init__(context)  # with no whole message yet, an error discards the file
+        options = MCAPWriteOptions(compression=_COMPRESSION[compression], chunk_size=chunk_size)
+        try:
+            self._writer = foxglove.open_mcap(self.partial_path, context=self._context, writer_options=options)
+        except OSError as error:
+            raise type(error)(f"cannot create {self.partial_path}: {error}") from None
+        self._chunk_size = chunk_size
+        self._failures = _WriteFailures()
+        self._foxglove_log = logging.getLogger("foxglove")
+        self._foxglove_log.addHandler(self._failures)
+        self._foxglove_log.propagate = False
+
+    def room_needed(self, message_bytes: int) -> int:
+        """Free bytes the disk must keep for a message of ``message_bytes``: the chunk being filled may
+        be flushed with it, and closing writes the summary (indexes and statistics)."""
+        return 2 * self._chunk_size + 2 * message_bytes + (1 << 20)
+
+    def _written(self, message_bytes: int) -> None:
+        """After a write: a RecordingError if it failed, or if the disk has no room for the next one."""
+        if self._failures.first is not None:
+            raise RecordingError(f"writing {self.partial_path} failed ({self._failures.first})")
+        stat = os.statvfs(self.partial_path.parent)
+        free = stat.f_bavail * stat.f_frsize
+        if free < self.room_needed(message_bytes):
+            raise RecordingError(f"the disk holding {self.partial_path.parent} is full ({free / 1e6:.1f} MB free, "
+                                 f"a recording keeps {self.room_needed(message_bytes) / 1e6:.1f} MB in hand)")
+
+    def __enter__(self) -> "McapRecorder":
+        return self
+
+    def __exit__(self, kind: Any, *exc: Any) -> None:
+        self.close(discard=kind is not None and not self._messages)
 
     def close(self, discard: bool = False) -> None:
         """Finalise the MCAP and move it to its final name; safe to call twice. If a write or finalising
@@ -668,6 +710,10 @@ DETECTIONS_TOPIC = "/perception/mushrooms_json"
 CAPS_TOPIC = "/perception/mushrooms"
 CAP_OUTLINES_TOPIC = "/perception/cap_outlines"
 """The caps as wire domes in a point cloud, for viewers that draw no SceneUpdate."""
+PLAN_TOPIC = "/perception/plan"
+"""The pick plan as a SceneUpdate: one approach arrow per cap, its place in the order as text."""
+PLAN_JSON_TOPIC = "/perception/plan_json"
+"""The pick plan as the detection document's ``"plan"``, with the unit's index: what a controller reads."""
 UNIT_TOPIC = "/fusion/unit"
 """JSON per fused cloud: its frames and its exact T_world_bed, so replay can start from fusion's output."""
 BED_TRANSFORM_TOPIC = "/fusion/tf"

@@ -111,6 +111,22 @@ class PickPlan:
         return {"order": list(self.order), "travel_m": float(self.travel_m), "caps": caps}
 
 
+PLAN_COLORS = {"next": (60, 200, 80), "held": (240, 170, 30), "growing": (150, 150, 150)}
+"""How viewers colour a plan's approach arrows: caps in the order green, ready caps the gripper cannot
+take yet (no room, or waiting for a cap it cannot take) amber, caps not ready grey."""
+APPROACH_ARROW = 0.04
+"""Metres: the length of an approach arrow in a viewer, about a gripper's reach above a cap."""
+
+
+def plan_marks(plan: dict) -> list[tuple[str, str]]:
+    """What a viewer shows of each cap of a plan document: its kind (a key of PLAN_COLORS) and its label
+    (its place in the order from 1, or why it waits)."""
+    kinds = ["next" if cap["order"] is not None else "held" if cap["ready"] else "growing" for cap in plan["caps"]]
+    return [(kind, f"{cap['order'] + 1}" if kind == "next" else
+             ("no room" if not cap["fits"] else "waits") if kind == "held" else "")
+            for cap, kind in zip(plan["caps"], kinds)]
+
+
 def plan_of_result(result, bed_points: np.ndarray, config: PickConfig, T_frame_bed: np.ndarray) -> dict:
     """The detection document's ``"plan"`` for a ``perception.detect.SceneResult`` in the bed frame (its
     cloud ``bed_points``), given in the frame ``T_frame_bed`` puts the caps in."""

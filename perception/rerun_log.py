@@ -7,6 +7,7 @@ import rerun as rr
 from scipy.spatial.transform import Rotation
 
 from perception.cap import cap_wireframe
+from perception.plan import APPROACH_ARROW, PLAN_COLORS, plan_marks
 
 
 def log_points(rec: rr.RecordingStream, entity: str, points: np.ndarray, colors: np.ndarray | None = None,
@@ -35,13 +36,6 @@ def log_caps(rec: rr.RecordingStream, entity: str, centers: np.ndarray, rotation
                                                 show_labels=True))
 
 
-PLAN_COLORS = {"next": (60, 200, 80), "held": (240, 170, 30), "growing": (150, 150, 150)}
-"""The pick plan's arrows: caps in the order green, ready caps the gripper cannot take yet (no room, or
-waiting for a cap it cannot take) amber, caps not ready grey."""
-APPROACH_ARROW = 0.04
-"""Metres: the length of an approach arrow, about a gripper's reach above a cap."""
-
-
 def log_plan(rec: rr.RecordingStream, entity: str, plan: dict) -> None:
     """The pick plan (a detection document's ``"plan"``, in the entity's frame): one arrow per cap from
     its grasp point along its approach, labelled with its place in the order or why it waits."""
@@ -49,13 +43,11 @@ def log_plan(rec: rr.RecordingStream, entity: str, plan: dict) -> None:
     if not caps:
         rec.log(entity, rr.Clear(recursive=False))
         return
-    kinds = ["next" if cap["order"] is not None else "held" if cap["ready"] else "growing" for cap in caps]
-    labels = [f"{cap['order'] + 1}" if kind == "next" else
-              ("no room" if not cap["fits"] else "waits") if kind == "held" else "" for cap, kind in zip(caps, kinds)]
+    marks = plan_marks(plan)
     rec.log(entity, rr.Arrows3D(origins=[cap["grasp"] for cap in caps],
                                 vectors=APPROACH_ARROW * np.array([cap["approach"] for cap in caps]),
-                                colors=[PLAN_COLORS[kind] for kind in kinds], labels=labels, radii=0.0012,
-                                show_labels=True))
+                                colors=[PLAN_COLORS[kind] for kind, _ in marks], labels=[label for _, label in marks],
+                                radii=0.0012, show_labels=True))
 
 
 def log_caps_in_image(rec: rr.RecordingStream, entity: str, centers: np.ndarray, rotations: np.ndarray,

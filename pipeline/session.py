@@ -6,7 +6,7 @@ from __future__ import annotations
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 from capture.source import Source
 from pipeline.runner import RunConfig, Runner, RunSummary
@@ -26,6 +26,9 @@ class Outputs:
     name: str | None = None
     """The recording's name in the viewer (the session's)."""
     quiet: bool = False
+    publish_to: Any = None
+    """A foxglove.Context a live server serves (``capture.mcap_io.serve_session``): every channel of the
+    session MCAP is published on it as it is written, with or without ``record``."""
 
 
 def run_chain(source: Source, model, config: RunConfig, outputs: Outputs, sensors: int = 1,
@@ -33,7 +36,7 @@ def run_chain(source: Source, model, config: RunConfig, outputs: Outputs, sensor
               stop_requested: Callable[[], str | None] = lambda: None, overwrite: bool = True) -> RunSummary:
     """Run ``source`` through fusion and perception into the ``outputs``; raises what a stage raised,
     after every output is finalised."""
-    from capture.mcap_io import McapRecorder
+    from capture.mcap_io import McapRecorder, SessionChannels
     from pipeline.rerun_sink import default_blueprint, rerun_stream
     from pipeline.sinks import ConsoleSink, JsonSink, McapSink, RerunSink
 
@@ -44,7 +47,10 @@ def run_chain(source: Source, model, config: RunConfig, outputs: Outputs, sensor
         if rec is not None:
             sinks.append(RerunSink(rec))
         if outputs.record is not None:
-            sinks.append(McapSink(McapRecorder(outputs.record, overwrite=overwrite), frames=outputs.record_frames))
+            sinks.append(McapSink(McapRecorder(outputs.record, overwrite=overwrite, context=outputs.publish_to),
+                                  frames=outputs.record_frames))
+        elif outputs.publish_to is not None:
+            sinks.append(McapSink(SessionChannels(outputs.publish_to)))
         if outputs.detections is not None:
             sinks.append(JsonSink(outputs.detections))
         return Runner(source, model, config, sinks, sensors, on_start, stop_requested).run()

@@ -73,8 +73,9 @@ class RerunSink(Sink):
 
 
 class McapSink(Sink):
-    """The session MCAP: every captured frame (with ``frames``), each fused cloud coloured, its
-    T_world_bed on /fusion/tf and in a unit record, and the caps as a SceneUpdate and as JSON."""
+    """The session's channels (an MCAP file, a live server, or both): every captured frame (with
+    ``frames``), each fused cloud coloured, its T_world_bed on /fusion/tf and in a unit record, the caps
+    and the pick plan each as a SceneUpdate and as JSON."""
 
     def __init__(self, recorder, frames: bool = True):
         self.recorder, self.frames = recorder, frames
@@ -110,15 +111,19 @@ class McapSink(Sink):
                                                   "frame_ids": list(unit.cloud.frame_ids)}, t)
 
     def detected(self, detection: Detection) -> None:
-        from capture.mcap_io import CAP_OUTLINES_TOPIC, CAPS_TOPIC, DETECTIONS_TOPIC
+        from capture.mcap_io import CAP_OUTLINES_TOPIC, CAPS_TOPIC, DETECTIONS_TOPIC, PLAN_JSON_TOPIC, PLAN_TOPIC
 
         t = detection.unit.last_frame_ns
         document = {**detection.document, "unit": detection.unit.index}
         outlines = cap_outlines(detection.result.caps)
+        plan = detection.document.get("plan")
         with self._lock:
             self.recorder.write_scene_update(CAPS_TOPIC, caps_scene_update(detection, t), t)
             self.recorder.write_point_cloud(CAP_OUTLINES_TOPIC, outlines, t, "world",
                                             colors=np.tile(np.uint8(CAP_COLOR), (len(outlines), 1)))
+            if plan is not None:
+                self.recorder.write_scene_update(PLAN_TOPIC, plan_scene_update(plan, t), t)
+                self.recorder.write_json(PLAN_JSON_TOPIC, {**plan, "unit": detection.unit.index}, t)
             self.recorder.write_json(DETECTIONS_TOPIC, document, t)
 
     def close(self, ok: bool) -> None:
@@ -166,6 +171,41 @@ def caps_scene_update(detection: Detection, log_time_ns: int):
                                  billboard=True, font_size=14.0, scale_invariant=True,
                                  color=Color(r=1.0, g=1.0, b=1.0, a=1.0),
                                  text=f"#{k} {2000 * scales[:2].mean():.0f} mm")]))
+    return SceneUpdate(deletions=[SceneEntityDeletion(timestamp=stamp, type=SceneEntityDeletionType.All)],
+                       entities=entities)
+
+
+def plan_scene_update(plan: dict, log_time_ns: int):
+    """A pick plan (in the world frame) as Foxglove draws it: one arrow per cap from its grasp point
+    along its approach, coloured and labelled as in Rerun (``perception.plan.plan_marks``)."""
+    from foxglove.messages import (ArrowPrimitive, Color, Pose, Quaternion, SceneEntity, SceneEntityDeletion,
+                                   SceneEntityDeletionType, SceneUpdate, TextPrimitive, Timestamp, Vector3)
+
+    from perception.plan import APPROACH_ARROW, PLAN_COLORS, plan_marks
+
+    stamp = Timestamp(log_time_ns // 1_000_000_000, log_time_ns % 1_000_000_000)
+    caps = plan["caps"]
+    grasps = np.array([cap["grasp"] for cap in caps]).reshape(-1, 3)
+    approaches = np.array([cap["approach"] for cap in caps]).reshape(-1, 3)
+    # a Foxglove arrow points along its pose's +x: the shortest rotation taking +x onto each approach,
+    # (x, y, z, w) = (+x cross a, 1 + +x . a) normalised (approaches point away from the bed, never along -x)
+    quaternions = np.stack([np.zeros(len(caps)), -approaches[:, 2], approaches[:, 1], 1 + approaches[:, 0]], 1)
+    quaternions /= np.linalg.norm(quaternions, axis=1, keepdims=True)
+    entities = []
+    for cap, grasp, approach, q, (kind, label) in zip(caps, grasps, approaches, quaternions, plan_marks(plan)):
+        r, g, b = (channel / 255 for channel in PLAN_COLORS[kind])
+        tip = grasp + approach * (APPROACH_ARROW + 0.004)
+        entities.append(SceneEntity(
+            timestamp=stamp, frame_id="world", id=f"pick-{cap['id']}",
+            arrows=[ArrowPrimitive(pose=Pose(position=Vector3(x=grasp[0], y=grasp[1], z=grasp[2]),
+                                             orientation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])),
+                                   shaft_length=0.75 * APPROACH_ARROW, shaft_diameter=0.0024,
+                                   head_length=0.25 * APPROACH_ARROW, head_diameter=0.006,
+                                   color=Color(r=r, g=g, b=b, a=1.0))],
+            texts=[TextPrimitive(pose=Pose(position=Vector3(x=tip[0], y=tip[1], z=tip[2]),
+                                           orientation=Quaternion(w=1.0)),
+                                 billboard=True, font_size=14.0, scale_invariant=True,
+                                 color=Color(r=r, g=g, b=b, a=1.0), text=label)] if label else []))
     return SceneUpdate(deletions=[SceneEntityDeletion(timestamp=stamp, type=SceneEntityDeletionType.All)],
                        entities=entities)
 

@@ -24,6 +24,16 @@ RUN_FLAGS = {"max_units": {"name": "turns", "parse": positive(int), "metavar": "
 STAGE_FLAGS = {"window": {"parse": positive(int), "metavar": "N"}}
 PERCEPTION_FLAGS = {"readings": {"parse": parse_readings, "metavar": "N"}}
 BED_FLAGS = {"seed": {"parse": parse_seed}, "views": {"parse": positive(int)}}
+FOXGLOVE_ADDRESS = "127.0.0.1:8765"
+"""Where Foxglove looks for a live robot by default."""
+
+
+def host_and_port(text: str) -> tuple[str, int]:
+    """``HOST:PORT`` (``:PORT`` alone: 127.0.0.1) as (host, port)."""
+    host, colon, port = text.rpartition(":")
+    if not colon or not port.isdigit() or int(port) > 65535:
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT with a port 0-65535, got {text!r}")
+    return host or "127.0.0.1", int(port)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -43,6 +53,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     viewer = parser.add_mutually_exclusive_group()
     viewer.add_argument("--spawn", action="store_true", help="show the run in a Rerun viewer")
     viewer.add_argument("--serve", action="store_true", help="serve the Rerun web viewer (a headless machine)")
+    parser.add_argument("--serve-foxglove", nargs="?", const=FOXGLOVE_ADDRESS, type=host_and_port,
+                        metavar="HOST:PORT",
+                        help=f"publish every channel of the session (frames, fused clouds, caps, the pick plan on "
+                             f"/perception/plan and /perception/plan_json) live on a Foxglove WebSocket server, "
+                             f"by default at {FOXGLOVE_ADDRESS} (port 0: any free port)")
     add_config_flags(parser, "pipeline.runner:RunConfig", RUN_FLAGS, only=tuple(RUN_FLAGS))
     add_config_flags(parser, "pipeline.sources:VirtualBed", BED_FLAGS, only=tuple(BED_FLAGS))
     add_model_flag(parser)
@@ -68,16 +83,12 @@ def run(args: argparse.Namespace) -> int:
     from pipeline.process import let_idle_threads_sleep
 
     let_idle_threads_sleep()  # before torch and Open3D load: the chain's stages share the cores
-    from capture.mcap_io import RecordingError, graceful_stop
-    from capture.source import SourceError
-    from fusion.turntable import Rig
-    from pipeline.flags import config_from_args
-    from fusion.cloud import FusionStage
-    from pipeline.runner import PerceptionStage, RunConfig
-    from pipeline.session import Outputs, run_chain
-    from pipeline.sources import make_source
+    from contextlib import ExitStack
 
-    record, rrd, detections = _checked_outputs(args)
+    from capture.mcap_io import serve_session
+    from fusion.turntable import Rig
+
+    files = _checked_outputs(args)
     pick = pick_config(args)
     rig = None
     if args.rig:
@@ -85,8 +96,31 @@ def run(args: argparse.Namespace) -> int:
             rig = Rig.load(args.rig)
         except ValueError as error:
             raise CliError(str(error)) from None
-    model, _ = load_model(args.model)
-    torch_threads(args.threads)
+    with ExitStack() as stack:
+        publish_to = None
+        if args.serve_foxglove:  # a port in use is refused before the model loads and the camera opens
+            try:
+                publish_to, port = stack.enter_context(serve_session(*args.serve_foxglove))
+            except OSError as error:
+                raise CliError(str(error)) from None
+            print(f"Foxglove server: ws://{args.serve_foxglove[0]}:{port}", flush=True)
+        model, _ = load_model(args.model)
+        torch_threads(args.threads)
+        return _run_live(args, model, rig, pick, files, publish_to)
+
+
+def _run_live(args: argparse.Namespace, model, rig, pick, files: tuple, publish_to) -> int:
+    """The camera through the chain into ``files`` (--record, --rrd, --detections) and a live server."""
+    from capture.mcap_io import RecordingError, graceful_stop
+    from capture.source import SourceError
+    from fusion.cloud import FusionStage
+    from fusion.turntable import Rig
+    from pipeline.flags import config_from_args
+    from pipeline.runner import PerceptionStage, RunConfig
+    from pipeline.session import Outputs, run_chain
+    from pipeline.sources import make_source
+
+    record, rrd, detections = files
     try:
         source = make_source(args.camera, args.serial, args.seed, args.views, playback=args.playback, live=True)
     except (SourceError, ImportError, ValueError) as error:
@@ -97,7 +131,8 @@ def run(args: argparse.Namespace) -> int:
                               perception=config_from_args(PerceptionStage, args),
                               plan=pick, live=True)
     outputs = Outputs(record=record, rrd=rrd, detections=detections, spawn=args.spawn, serve=args.serve,
-                      name=f"live {args.camera} {time.strftime('%Y-%m-%d %H:%M:%S')}", quiet=args.quiet)
+                      name=f"live {args.camera} {time.strftime('%Y-%m-%d %H:%M:%S')}", quiet=args.quiet,
+                      publish_to=publish_to)
     with graceful_stop() as stop:
         try:
             summary = run_chain(source, model, config, outputs,
