@@ -31,6 +31,12 @@ class Source(abc.ABC):
     def close(self) -> None:
         """Release the device or file; safe to call twice."""
 
+    @property
+    def turntable(self):
+        """The ``common.geometry.Turntable`` the frames are taken on when the source's own set-up says
+        it (a virtual camera); None for a real camera, whose rig comes from ``calibrate``."""
+        return None
+
     def __iter__(self) -> Iterator[DepthFrame]:
         while (frame := self.read()) is not None:
             yield frame
@@ -76,6 +82,10 @@ class Paced(Source):
 
     def open(self) -> None:
         self.source.open()
+
+    @property
+    def turntable(self):
+        return self.source.turntable
 
     def read(self) -> DepthFrame | None:
         import time

@@ -224,6 +224,10 @@ class VirtualSource(Source):
     def __len__(self) -> int:
         return len(self.config)
 
+    @property
+    def turntable(self) -> Turntable | None:
+        return self.config.turntable
+
     def open(self) -> None:
         if self._scene is None:
             self._scene = MeshScene(self._vertices, self._triangles, threads=0)

@@ -59,7 +59,7 @@ def _run(folder: Path, model, seed: int, views: int, rrd: bool, spawn: bool, pro
     start = time.perf_counter()
     source, bed = virtual_bed_source(VirtualBed(seed=seed, views=views, start_ns=time.time_ns()))
     scene_s = time.perf_counter() - start
-    config = RunConfig(fusion=FusionStage(FusionConfig(angles="encoder"), Rig(source.config.turntable)))
+    config = RunConfig(fusion=FusionStage(FusionConfig(angles="encoder"), Rig(source.turntable)))
     outputs = Outputs(record=folder / "session.mcap", rrd=folder / "demo.rrd" if rrd else None,
                       detections=folder / "detections.json", spawn=spawn, name=f"demo bed {seed}",
                       quiet=not progress)

@@ -126,7 +126,7 @@ def _run_live(args: argparse.Namespace, model, rig, pick, files: tuple, publish_
     except (SourceError, ImportError, ValueError) as error:
         raise CliError(f"{args.camera} camera: {error}") from None
     if args.camera == "virtual" and rig is None:
-        rig = Rig(source.source.config.turntable)
+        rig = Rig(source.turntable)
     config = config_from_args(RunConfig, args, fusion=FusionStage(rig=rig, window=args.window),
                               perception=config_from_args(PerceptionStage, args),
                               plan=pick, live=True)
