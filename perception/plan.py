@@ -10,7 +10,8 @@ frame, with ``up`` the bed's normal in that frame:
   way the gripper moves back out), the cap's axis turned toward ``up`` as far as ``max_tilt_deg`` asks.
 - ``clearance_mm``: the free room around the approach line from the grasp point up: the distance from
   that line to the nearest point of the cloud or of another cap's dome, leaving out the cap's own and
-  those of the caps it waits for.
+  those of the caps it waits for. The cloud is bucketed in cubes once (``points_in_boxes``), so each cap
+  looks only at the points near its line.
   ``fits`` says whether the gripper's radius (the cup's; for fingers, the cap's radius plus
   ``finger_clearance_mm``) fits in it, and for fingers whether the cap fits between them.
 - ``blocked_by``: the caps whose dome the approach line passes through above the grasp point (a small
@@ -32,13 +33,19 @@ from perception.cap import Caps, cap_wireframe
 
 GripperKind = Literal["suction", "fingers"]
 """A suction cup takes a cap on the top of its dome; fingers close around its rim."""
-CLEARANCE_REACH_MM = 60.0
-"""Room beyond this around the approach line is not looked for: the clearance reads at most this."""
+CLEARANCE_REACH_MM = 30.0
+"""Room beyond this around the approach line is not looked for, unless the gripper needs more: the
+clearance reads at most this (twice the default cup's radius), or the room the gripper needs."""
+APPROACH_REACH_MM = 60.0
+"""How far up the approach line, from the grasp point, obstacles count: above the tallest caps."""
 OWN_SURFACE = 1.15
 """A point within this many times a cap's semi-axes of its centre is the cap's own (when the cloud
 comes without per-point cap labels)."""
 BELOW_GRASP_MM = 1.0
 """Points this far below the grasp point (along the approach) still count against the gripper."""
+GRID_CELL_MM = 10.0
+"""The edge of the cubes the cloud is bucketed in to find the points near each approach: small beside
+the reach, so that a cap's search takes little of the soil below its grasp point."""
 
 
 @dataclass(frozen=True)
@@ -81,7 +88,7 @@ class PickPlan:
     approach: np.ndarray
     """(K, 3) unit vectors, away from the cap."""
     clearance_mm: np.ndarray
-    """(K,) free room around the approach line, at most ``CLEARANCE_REACH_MM``."""
+    """(K,) free room around the approach line, at most ``clearance_reach_mm`` of the config."""
     fits: np.ndarray
     """(K,) bool."""
     blocks: np.ndarray
@@ -150,31 +157,15 @@ def plan_picks(caps: Caps, points: np.ndarray, config: PickConfig = PickConfig()
     on_top = config.gripper == "suction"
     grasp = caps.centers + (caps.scales[:, 2:3] * caps.axes if on_top else 0.0)
     points = np.asarray(points, np.float64).reshape(-1, 3)
-    high = points @ up >= lowest_obstacle(grasp, approach, up)  # the soil under every grasp point has no say
-    points, labels = points[high], None if point_labels is None else np.asarray(point_labels)[high]
     blocks = lines_through_domes(caps, grasp, approach)
-    clearance = clearances_mm(caps, points, labels, grasp, approach, blocks)
-    if on_top:
-        gripper_radius = np.full(count, config.gripper_diameter_mm / 2)
-        fits = clearance >= gripper_radius
-    else:
-        fits = (clearance >= radii_mm + config.finger_clearance_mm) & (2 * radii_mm <= config.gripper_diameter_mm)
+    clearance = clearances_mm(caps, points, point_labels, grasp, approach, blocks, up, clearance_reach_mm(config))
+    fits = clearance >= needed_room_mm(config, radii_mm)
+    if not on_top:  # fingers open only so wide
+        fits &= 2 * radii_mm <= config.gripper_diameter_mm
     pickable = can_be_picked(ready & fits, blocks)
     order = pick_order(grasp, blocks, pickable)
     travel = float(np.linalg.norm(np.diff(grasp[list(order)], axis=0), axis=1).sum()) if len(order) > 1 else 0.0
     return PickPlan(ready, grasp, approach, clearance, fits, blocks, order, travel)
-
-
-def lowest_obstacle(grasp: np.ndarray, approach: np.ndarray, up: np.ndarray) -> float:
-    """The height along ``up`` below which no point can be within ``clearances_mm``'s reach of any
-    approach line: a point counts from ``BELOW_GRASP_MM`` under the grasp point along the approach, and a
-    tilted line reaches lower beside it, by at most its tilt's sine times the reach's diagonal."""
-    cosine = approach @ up
-    if cosine.min() < 1e-6:
-        return -np.inf
-    reach, below = CLEARANCE_REACH_MM / 1000.0, BELOW_GRASP_MM / 1000.0
-    sine = np.sqrt(np.clip(1.0 - cosine ** 2, 0.0, None))
-    return float((grasp @ up - (below + sine * reach * np.sqrt(2.0)) / cosine).min())
 
 
 def tilted_toward(axes: np.ndarray, up: np.ndarray, max_tilt: float) -> np.ndarray:
@@ -189,52 +180,120 @@ def tilted_toward(axes: np.ndarray, up: np.ndarray, max_tilt: float) -> np.ndarr
     return np.where((np.arccos(cosine) > max_tilt)[:, None], clamped, axes)
 
 
-def point_owners(caps: Caps, points: np.ndarray, point_labels: np.ndarray | None, tree) -> np.ndarray:
-    """(N,) the cap each cloud point belongs to, -1 for none: its label when the detector gives one, else
-    the cap whose ellipsoid, grown by ``OWN_SURFACE``, holds the point (a dome's edge the detector left
-    unlabelled is still the cap's own). ``tree`` is a KD-tree whose first N points are ``points``."""
-    owners = np.full(len(points), -1, np.int64) if point_labels is None else np.asarray(point_labels, np.int64).copy()
-    near = tree.query_ball_point(caps.centers, r=OWN_SURFACE * caps.scales.max(1))
-    sizes = np.fromiter((len(found) for found in near), np.int64, len(caps))
-    cap_index = np.repeat(np.arange(len(caps)), sizes)
-    point_index = np.concatenate([np.asarray(found, np.int64) for found in near])
-    from_cloud = point_index < len(points)
-    cap_index, point_index = cap_index[from_cloud], point_index[from_cloud]
-    local = np.einsum("kyx,ky->kx", caps.rotations[cap_index], points[point_index] - caps.centers[cap_index])
-    inside = (np.square(local / caps.scales[cap_index]).sum(1) <= OWN_SURFACE ** 2) & (owners[point_index] < 0)
-    owners[point_index[inside]] = cap_index[inside]
-    return owners
+def needed_room_mm(config: PickConfig, radii_mm: np.ndarray) -> np.ndarray:
+    """Per cap, the room (mm) the gripper needs around the approach line: the cup's radius, or for
+    fingers the cap's radius plus the fingers' clearance."""
+    if config.gripper == "suction":
+        return np.full(len(radii_mm), config.gripper_diameter_mm / 2)
+    return radii_mm + config.finger_clearance_mm
+
+
+def clearance_reach_mm(config: PickConfig) -> float:
+    """How far around the approach line room is looked for: ``CLEARANCE_REACH_MM``, or the most the
+    gripper can need (fingers open around caps up to ``gripper_diameter_mm``)."""
+    return max(CLEARANCE_REACH_MM, config.gripper_diameter_mm / 2 +
+               (config.finger_clearance_mm if config.gripper == "fingers" else 0.0))
 
 
 def clearances_mm(caps: Caps, points: np.ndarray, point_labels: np.ndarray | None, grasp: np.ndarray,
-                  approach: np.ndarray, blocks: np.ndarray) -> np.ndarray:
-    """Per cap, the distance (mm) from its approach line (from just below the grasp point up) to the
-    nearest obstacle, at most ``CLEARANCE_REACH_MM``: a cloud point, or a point of another cap's dome (its
-    rim and two meridians). The cap's own points do not count (``point_owners``), nor those of the caps
-    it waits for (``blocks``), which are gone when its turn comes."""
-    from scipy.spatial import cKDTree
-
+                  approach: np.ndarray, blocks: np.ndarray, up: np.ndarray, reach_mm: float) -> np.ndarray:
+    """Per cap, the distance (mm) from its approach line (from just below the grasp point up to
+    ``APPROACH_REACH_MM``) to the nearest obstacle, at most ``reach_mm``: a cloud point, or a point of
+    another cap's dome (its rim and two meridians). The cap's own points do not count, nor those of the
+    caps it waits for (``blocks``), which are gone when its turn comes: a point is a cap's by the
+    detector's label, or, unlabelled, when it lies in the cap's ellipsoid grown by ``OWN_SURFACE`` (a
+    dome's edge the detector left out)."""
     count = len(caps)
     domes = cap_wireframe(caps.centers, caps.rotations, caps.scales)
     obstacles = np.concatenate([points, domes.reshape(-1, 3)])
-    tree = cKDTree(obstacles, balanced_tree=False, compact_nodes=False)  # built once, queried twice
-    owner = np.concatenate([point_owners(caps, points, point_labels, tree),
-                            np.repeat(np.arange(count), domes.shape[1])])
-    reach, below = CLEARANCE_REACH_MM / 1000.0, BELOW_GRASP_MM / 1000.0
-    # the candidates of a cap: within reach of the middle of its line's stretch as tall as the reach
-    near = tree.query_ball_point(grasp + approach * reach / 2, r=reach * np.sqrt(1.25))
-    sizes = np.fromiter((len(found) for found in near), np.int64, count)
-    cap_index = np.repeat(np.arange(count), sizes)
-    obstacle_index = np.concatenate([np.asarray(found, np.int64) for found in near])
-    offset = obstacles[obstacle_index] - grasp[cap_index]
-    along = np.einsum("ij,ij->i", offset, approach[cap_index])
-    across = np.linalg.norm(offset - along[:, None] * approach[cap_index], axis=1)
+    labels = np.full(len(points), -1, np.int64) if point_labels is None else np.asarray(point_labels, np.int64)
+    owner = np.concatenate([labels, np.repeat(np.arange(count), domes.shape[1])])
+    reach, below, height = reach_mm / 1000.0, BELOW_GRASP_MM / 1000.0, APPROACH_REACH_MM / 1000.0
+    # the search box of each cap bounds its cylinder: the axis from below the grasp point up, widened on
+    # each axis of the bed's frame by the reach times the sine of the cylinder's axis's angle to it
+    basis = bed_basis(up)
+    start, end = (grasp - below * approach) @ basis, (grasp + height * approach) @ basis
+    widen = reach * np.sqrt(np.clip(1.0 - np.square(approach @ basis), 0.0, None))
+    local = basis.T @ obstacles.T  # (3, M): across the bed twice, and up
+    cap_index, obstacle_index = points_in_boxes(local, np.minimum(start, end) - widen,
+                                                np.maximum(start, end) + widen, GRID_CELL_MM / 1000.0)
+    # the pairs come grouped by cap, so each cap's grasp point and approach are repeated, not gathered
+    pairs_per_cap = np.bincount(cap_index, minlength=count)
+    grasp_local, approach_local = grasp @ basis, approach @ basis
+    offset = [local[d][obstacle_index] - np.repeat(grasp_local[:, d], pairs_per_cap) for d in range(3)]
+    along = sum(offset[d] * np.repeat(approach_local[:, d], pairs_per_cap) for d in range(3))
+    across_squared = offset[0] ** 2 + offset[1] ** 2 + offset[2] ** 2 - along ** 2
+    counted = np.flatnonzero((along >= -below) & (along <= height) & (across_squared < reach ** 2))
+    cap_index, obstacle_index = cap_index[counted], obstacle_index[counted]
+    across = np.sqrt(np.clip(across_squared[counted], 0.0, None))
     holder = owner[obstacle_index]
     gone = (holder == cap_index) | ((holder >= 0) & blocks[np.maximum(holder, 0), cap_index])
-    counted = ~gone & (along >= -below) & (along <= reach)
+    unlabelled = np.flatnonzero(holder < 0)
+    unlabelled_cap = cap_index[unlabelled]
+    gone[unlabelled] = in_grown_cap(caps, unlabelled_cap, obstacles[obstacle_index[unlabelled]])
+    waiter, waited = np.nonzero(blocks.T)  # grouped by waiter: the unlabelled points of a cap's blockers
+    if len(waiter):                         # are gone with them
+        blockers_per_cap = np.bincount(waiter, minlength=count)
+        first_blocker = np.cumsum(blockers_per_cap) - blockers_per_cap
+        pair = np.repeat(unlabelled, blockers_per_cap[unlabelled_cap])
+        blocker = waited[ranges(first_blocker[unlabelled_cap], blockers_per_cap[unlabelled_cap])]
+        inside = in_grown_cap(caps, blocker, obstacles[obstacle_index[pair]])
+        gone[pair[inside]] = True
     clearance = np.full(count, reach)
-    np.minimum.at(clearance, cap_index[counted], across[counted])
+    np.minimum.at(clearance, cap_index[~gone], across[~gone])
     return 1000.0 * clearance
+
+
+def in_grown_cap(caps: Caps, cap_index: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Whether each of ``points`` lies in its cap's ellipsoid grown by ``OWN_SURFACE``."""
+    local = np.einsum("kyx,ky->kx", caps.rotations[cap_index], points - caps.centers[cap_index])
+    return np.square(local / caps.scales[cap_index]).sum(1) <= OWN_SURFACE ** 2
+
+
+def bed_basis(up: np.ndarray) -> np.ndarray:
+    """(3, 3) columns: two unit vectors across the bed and ``up``, a right-handed frame."""
+    across = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    across /= np.linalg.norm(across)
+    return np.stack([across, np.cross(up, across), up], axis=1)
+
+
+def points_in_boxes(coords: np.ndarray, low: np.ndarray, high: np.ndarray, cell: float) -> tuple[np.ndarray, ...]:
+    """Pairs (box, point) holding every point of ``coords`` (3, N) that lies in an axis-aligned box
+    (``low``, ``high``: (B, 3)), and some near it: the points are bucketed once in cubes of ``cell``
+    (sorted by cube, a radix sort), and each box takes the points of the cubes it overlaps. A KD-tree
+    over the whole cloud costs more to build than the plan may take; buckets cost one sort."""
+    coords = np.ascontiguousarray(coords)
+    cell = np.broadcast_to(np.asarray(cell, np.float64), (3,)).copy()
+    origin = coords.min(1)
+    span = coords.max(1) - origin
+    while True:  # cube indices fit 16 bits, which numpy sorts by radix
+        shape = (span / cell).astype(np.int64) + 1
+        if shape.prod() < 2 ** 16:
+            break
+        cell *= 1.25
+    cube = np.floor((coords - origin[:, None]) / cell[:, None])  # in floats: one cast to integers, not three
+    key = ((cube[0] * shape[1] + cube[1]) * shape[2] + cube[2]).astype(np.uint16)
+    by_cube = np.argsort(key, kind="stable")
+    per_cube = np.bincount(key, minlength=int(shape.prod()))
+    cube_start = np.cumsum(per_cube) - per_cube
+    first = np.clip(np.floor((low - origin) / cell).astype(np.int64), 0, shape - 1)
+    last = np.clip(np.floor((high - origin) / cell).astype(np.int64), 0, shape - 1)
+    empty = (high < origin).any(1) | (low > origin + shape * cell).any(1)
+    extent = np.where(empty[:, None], 0, last - first + 1)
+    cubes_per_box = extent.prod(1)
+    box = np.repeat(np.arange(len(low)), cubes_per_box)
+    within = ranges(np.zeros(len(low), np.int64), cubes_per_box)
+    size = extent[box]
+    step = np.stack([within // (size[:, 1] * size[:, 2]), within // size[:, 2] % size[:, 1], within % size[:, 2]], 1)
+    at = first[box] + step
+    cube_key = (at[:, 0] * shape[1] + at[:, 1]) * shape[2] + at[:, 2]
+    taken = per_cube[cube_key]
+    return np.repeat(box, taken), by_cube[ranges(cube_start[cube_key], taken)]
+
+
+def ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """The ranges ``starts[i]`` to ``starts[i] + counts[i]`` (exclusive), one after another."""
+    return np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts - starts, counts)
 
 
 def lines_through_domes(caps: Caps, grasp: np.ndarray, approach: np.ndarray) -> np.ndarray:

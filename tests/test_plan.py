@@ -8,7 +8,7 @@ import pytest
 
 from perception.cap import Caps, cap_rotation
 from perception.plan import (CLEARANCE_REACH_MM, PickConfig, can_be_picked, pick_order, plan_picks,
-                             tilted_toward)
+                             points_in_boxes, tilted_toward)
 
 
 def upright_caps(rows):
@@ -29,12 +29,18 @@ BED = [(0.0, 0.0, 0.0, 0.020),     # A
 A, B, C, D, E = range(5)
 
 
+# A point on E's dome 8 mm from D's line: E's local (8, 10, z) mm on its ellipsoid of semi-axes
+# (30, 30, 20) has z = 20 sqrt(1 - (8/30)^2 - (10/30)^2) = 18.09 mm, 48.09 mm up.
+ON_E_OVER_D = (0.008, 0.21, 0.03 + 0.020 * np.sqrt(1 - (8 / 30) ** 2 - (10 / 30) ** 2))
+
+
 def bed_cloud():
-    """Soil 2 mm under the caps' bases, every 5 mm, and one stray point 12 mm from B's axis above B's top."""
+    """Soil 2 mm under the caps' bases, every 5 mm, one stray point 12 mm from B's axis above B's top,
+    and an unlabelled point of E's dome over D."""
     grid = np.arange(-0.05, 0.3, 0.005)
     x, y = np.meshgrid(grid, grid)
     soil = np.column_stack([x.ravel(), y.ravel(), np.full(x.size, -0.002)])
-    return np.vstack([soil, [[0.112, 0.0, 0.02]]])
+    return np.vstack([soil, [[0.112, 0.0, 0.02]], [ON_E_OVER_D]])
 
 
 def test_constructed_bed_by_hand():
@@ -51,8 +57,8 @@ def test_constructed_bed_by_hand():
     # over E's base, which is above D's top (10.7 mm); no other line meets another dome
     assert [plan.blocked_by(k) for k in range(5)] == [[], [], [], [E], []]
     # B: the stray point is 12 mm from its line and 6.7 mm above its top: room 12 mm < the cup's 15 mm.
-    # The soil lies more than 1 mm below every grasp point; E is gone before D's turn; nothing else is
-    # within reach
+    # The soil lies more than 1 mm below every grasp point; E, and with it the point of its dome 8 mm
+    # from D's line and 37 mm over D's top, is gone before D's turn; nothing else is within reach
     np.testing.assert_allclose(plan.clearance_mm, [CLEARANCE_REACH_MM, 12.0, CLEARANCE_REACH_MM,
                                                    CLEARANCE_REACH_MM, CLEARANCE_REACH_MM], atol=1e-9)
     assert plan.fits.tolist() == [True, False, True, True, True]
@@ -75,8 +81,9 @@ def test_fingers_take_the_rim_and_need_room_beside_it():
     plan = plan_picks(caps, cloud, PickConfig(gripper="fingers", gripper_diameter_mm=50.0,
                                               finger_clearance_mm=8.0, pick_diameter_mm=30.0))
     np.testing.assert_allclose(plan.grasp, np.array(BED[:2])[:, :3])
-    # A needs 20 + 8 = 28 mm beside its axis and has 25; the point is 75 mm from B, A's rim 80 mm
-    np.testing.assert_allclose(plan.clearance_mm, [25.0, CLEARANCE_REACH_MM], atol=1e-9)
+    # A needs 20 + 8 = 28 mm beside its axis and has 25; the point is 75 mm from B, A's rim 80 mm: B's
+    # room is read as far as fingers opening to 50 mm can need, 25 + 8 = 33 mm
+    np.testing.assert_allclose(plan.clearance_mm, [25.0, 33.0], atol=1e-9)
     assert plan.fits.tolist() == [False, True]
     # 40 mm caps in fingers that open to 35 mm: none fits
     narrow = plan_picks(caps, cloud, PickConfig(gripper="fingers", gripper_diameter_mm=35.0))
@@ -170,3 +177,18 @@ def test_the_replay_check_reports_readiness_and_order_changes_of_matched_caps():
     assert "pick plan changes" in report.table()
     # documents without a plan (sessions recorded before it) are compared on caps alone
     assert compare([caps.to_document("bed", 1)], [document]).passed
+
+
+def test_points_in_boxes_holds_every_point_of_each_box_once():
+    rng = np.random.default_rng(3)
+    points = rng.uniform([-0.3, -0.2, -0.02], [0.3, 0.2, 0.05], (5000, 3))
+    low = rng.uniform([-0.35, -0.25, -0.03], [0.3, 0.2, 0.05], (40, 3))
+    high = low + rng.uniform(0.0, 0.08, (40, 3))
+    box, point = points_in_boxes(points.T, low, high, 0.01)
+    found = set(zip(box.tolist(), point.tolist()))
+    assert len(found) == len(box)  # no pair twice
+    inside = ((points[None] >= low[:, None]) & (points[None] <= high[:, None])).all(2)
+    assert set(zip(*map(np.ndarray.tolist, np.nonzero(inside)))) <= found
+    # and little more than the cubes of 10 mm around each box hold
+    grown = ((points[None] >= low[:, None] - 0.01) & (points[None] <= high[:, None] + 0.01)).all(2)
+    assert all(grown[b, p] for b, p in found)
