@@ -25,17 +25,9 @@ LENGTH_UNIT = 0.1
 their squared error then balances the other two terms."""
 
 INFERENCE_ZOOM = 1.05
-"""The zoom new models are read at when training names none (``TrainConfig.zoom``; weights record it as
-``MushroomNet.inference_zoom``; a fine-tune starts at it too, whatever its start was read at), for the
-default scale jitter of 0.9-1.1. The shipped model, fine-tuned on beds scaled by 1.05-1.35, is read at
-1.2 (model card). The network reads a cloud scaled up by this factor, i.e. at its voxel / 1.05: a small
-cap, the kind it misses or tilts wrongly, then spans more voxels, and the factor stays inside
-training's scale jitter. Clustering stays at the model's voxel in the cloud's own metres: caps keep
-their real size. Chosen on val50 (3 mm spacing, MeanShift) for a model trained on 3 mm beds at the
-default jitter (``dense7k`` + ``tune1400``), zoom 1 / 1.025 / 1.05 / 1.075 / 1.1 / 1.15 / 1.2: AP@25
-99.30 / 99.42 / 99.64 / 99.49 / 99.47 / 99.44 / 98.02 %, cosine 0.9961 / 0.9968 / 0.9971 / 0.9969 /
-0.9963 / 0.9967 / 0.9971. Weights that record no zoom are read at 1.1
-(``perception.weights.UNRECORDED_ZOOM``)."""
+"""The zoom new models are read at when training names none (weights record their own, the shipped one
+1.2): the network reads the cloud scaled up by it, so small caps span more voxels, within training's
+scale jitter. Clustering stays in the cloud's own metres."""
 
 
 ENCODINGS = ("implicit", "explicit-centre", "explicit-orientation")

@@ -37,67 +37,35 @@ HEIGHT_MODES = ("free", "fixed")
 AXIS_MODES = ("surface", "encoding")
 RADIUS_MODES = ("rim", "fit")
 SURFACE_ITERATIONS = 6
-"""Steps of the surface fit. The model trained on 5.1 mm beds, val50 at 5.1 mm spacing, mean angle with
-``STEP_LIMITS``: 3.74 degrees after 4 iterations, 3.61 after 5, 3.55 after 6; 8 iterations with limits
-three times tighter give 3.59. The figures of ``SURFACE_L1_SCALE`` and ``SURFACE_ENCODING_WEIGHT`` are
-measured with that model and those tighter limits. The model trained on 3 mm beds scaled 0.9-1.1
-(``dense7k`` + ``tune1400``, read at zoom 1.05): val50 cosine 0.99684, 0.99694, 0.99705 and 0.99710
-after 4, 5, 6 and 8 iterations, and no better after 12, 20 or 30 (test50: 0.99674, 0.99684, 0.99685,
-0.99687). Each iteration costs 0.4-0.5 ms of the pose step on 46 caps."""
+"""Steps of the surface fit: the axis stops improving after about six (model card, pose-fit table)."""
 SURFACE_L1_SCALE = 1e-4
 """Metres. Surface residuals above it are weighted as in an L1 fit, so that a cluster's stray voxels
-(rim, gills, a neighbour's edge) do not pull the axis. Val50 mean angle with this at 2, 0.5, 0.1 and
-0.03 mm: 5.14, 4.31, 3.60 and 3.85 degrees."""
+(rim, gills, a neighbour's edge) do not pull the axis."""
 SURFACE_OUTLIER_FACTOR = 8.0
 """A point further from the current surface than this many times the median distance of all the
-clusters' points has no say in the next step. The voxels a cluster wrongly holds are mostly where the
-cap meets the soil, cap and soil in one voxel, a few millimetres off the dome, and even under L1 weights
-three of them could turn a 25-voxel cap by 25 degrees; dropped from the first step on, the cut also
-keeps a poor start from being pulled further off. The median (0.063 mm on val50 beds, so the cut is
-about 0.5 mm there) scales the cut with the cloud's noise: a fixed 1 mm does as well on val50 / test50
-but worse on the demo's fused clouds. With ``dense7k`` + ``tune1400`` (``SURFACE_ITERATIONS``), val50 /
-test50 cosine without the cut 0.99706 / 0.99685; at 5, 8, 12 and 16 times the median 0.99710 / 0.99711,
-0.99714 / 0.99717, 0.99716 / 0.99713 and 0.99719 / 0.99704; at 8, four other models gain 0.0002-0.0008
-on each set. Demo beds 0-23 (fused clouds), mean of the beds' axis errors: 6.19 degrees without, 6.16 at
-8 times, 6.28 with 1 mm. A cut from each cluster's own median (2-4 times), or none for a cluster with
-less than half its points inside, does worse."""
+clusters' points has no say in the next step: voxels where cap and soil meet would turn a small cap
+even under L1 weights, and the median scales the cut with the cloud's noise."""
 SURFACE_ENCODING_WEIGHT = 0.04
 """Weight of the encoding residual (a distance along the axis, metres) beside the surface's, on a clean
-surface (``encoding_weight`` raises it on a noisy one). Without it the dome of a small or half-seen cap
-lets the axis swing off (val50: 4.58 degrees, AP@50 91.7 %); at 0.02 and 0.1: 3.75 and 4.41 degrees; at
-0.04: 3.60, AP@50 94.2 %."""
+surface (``encoding_weight`` raises it on a noisy one): it keeps a small or half-seen dome's axis from
+swinging off."""
 SURFACE_MIN_POINTS = 8
 """Smaller clusters keep the encoding's axis: nine unknowns need more than a handful of points. So do
 clusters whose fitted height ratio leaves ``HEIGHT_RATIO_RANGE``: the fit has turned them over."""
 SURFACE_MAX_POINTS = 64
 """A larger cluster is fitted on an even subset of this many points: on 2 cores the fit's cost is the
-padded width. On 5.1 mm val50 the model trained on 5.1 mm beds gives 3.55 degrees at 48, 3.50 with every
-point and 3.52 at 64. With the ``long10k`` soup of two fine-tunes (zoom 1.05) the demo's fused clouds
-(virtual D405, beds 0-23, read through ``detect_points``), whose caps, seen from all round, fill more
-voxels, gain most; mean / median of the caps' angles there 4.61 / 3.18 degrees at 48, 4.31 / 2.92 at 64,
-4.27 / 2.88 at 96 and 4.17 / 2.74 with every point; val50 / test50 cosine 0.99734 / 0.99746, 0.99737 /
-0.99751, 0.99743 / 0.99752 and 0.99745 / 0.99755. The pose step of the val50 bed with most caps (48), 30
-runs interleaved: median 3.61, 3.82 and 4.37 ms at 48, 64 and 80 (16.9 ms with every point)."""
+padded width, and more points gain little."""
 STEP_LIMITS = np.array([6e-3, 0.45])
-"""Largest move of the centre (metres) and turn (radians) in one step of the surface fit. Val50 at
-5.1 mm spacing (the model trained on 5.1 mm beds), 6 iterations, mean angle with these limits times
-1/3, 2/3, 1 and 4/3: 3.71, 3.58, 3.55 and 3.55 degrees; a cap that the bound lets swing over is
-caught by the height-ratio gate."""
+"""Largest move of the centre (metres) and turn (radians) in one step of the surface fit; a cap the
+bound lets swing over is caught by the height-ratio gate."""
 RIM_QUANTILE = 0.9
 """The reported radius is this quantile of a cap's voxels' distances from its axis (``rim_radii``): what
-its own points show. The ellipsoid's s extrapolates the template's dome down to its base, and real
-caps are not the template (the labelled caps of ../shared/real/ are shallow spherical domes, e.g. a
-28 mm rim on a 42 mm sphere): there s came out 18.5 % larger than the labelled radius (median over the
-non-partial caps), the rim 6.7 %. The quantile is the one that measures synthetic caps best: on the
-18-view fused beds of bench/views.py, scale error 5.6, 4.6 and 5.0 % at 0.85, 0.9 and 0.95 against
-3.9 % from the fit; val50 / test50 3.95 / 3.66 % against 2.75 / 2.64 %, AP@50 within 0.1 point."""
+its own points show. Real caps are shallower domes than the template, so the ellipsoid's s, which
+extrapolates the template's dome to its base, overstates them."""
 SURFACE_NOISE_REFERENCE = 3e-4
 """Metres. Up to this median distance of the clusters' points from their fitted surfaces the encoding
-keeps ``SURFACE_ENCODING_WEIGHT`` (``encoding_weight``). It lies above the noisiest camera input the
-synthetic benches model, so that val50, test50 and every view set of bench/views.py get the same axes
-as with the fixed weight: the virtual D405's single view (3 beds) ends 0.15-0.19 mm off, fused views
-0.13-0.17 mm, val50 and test50 0.04-0.07 mm (their first 5 beds); the real cloud of ../shared/real/
-0.39-0.41 mm."""
+keeps ``SURFACE_ENCODING_WEIGHT`` (``encoding_weight``): above every synthetic camera's noise, below a
+real RealSense cloud's."""
 HEIGHT_RATIO_RANGE = (CAP_HEIGHT_RATIO * 0.8 / 1.2, CAP_HEIGHT_RATIO * 1.2 / 0.8)
 """s_z / s of the template under per-axis factors in [0.8, 1.2]."""
 
