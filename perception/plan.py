@@ -29,7 +29,7 @@ from typing import Literal
 import numpy as np
 
 from common.geometry import transform_points
-from perception.cap import Caps, cap_wireframe
+from perception.cap import Caps, cap_wireframe, rotation_from_axis
 
 GripperKind = Literal["suction", "fingers"]
 """A suction cup takes a cap on the top of its dome; fingers close around its rim."""
@@ -191,8 +191,7 @@ def needed_room_mm(config: PickConfig, radii_mm: np.ndarray) -> np.ndarray:
 def clearance_reach_mm(config: PickConfig) -> float:
     """How far around the approach line room is looked for: ``CLEARANCE_REACH_MM``, or the most the
     gripper can need (fingers open around caps up to ``gripper_diameter_mm``)."""
-    return max(CLEARANCE_REACH_MM, config.gripper_diameter_mm / 2 +
-               (config.finger_clearance_mm if config.gripper == "fingers" else 0.0))
+    return max(CLEARANCE_REACH_MM, float(needed_room_mm(config, np.array([config.gripper_diameter_mm / 2]))[0]))
 
 
 def clearances_mm(caps: Caps, points: np.ndarray, point_labels: np.ndarray | None, grasp: np.ndarray,
@@ -211,7 +210,7 @@ def clearances_mm(caps: Caps, points: np.ndarray, point_labels: np.ndarray | Non
     reach, below, height = reach_mm / 1000.0, BELOW_GRASP_MM / 1000.0, APPROACH_REACH_MM / 1000.0
     # the search box of each cap bounds its cylinder: the axis from below the grasp point up, widened on
     # each axis of the bed's frame by the reach times the sine of the cylinder's axis's angle to it
-    basis = bed_basis(up)
+    basis = rotation_from_axis(up)  # columns: two directions across the bed, and up
     start, end = (grasp - below * approach) @ basis, (grasp + height * approach) @ basis
     widen = reach * np.sqrt(np.clip(1.0 - np.square(approach @ basis), 0.0, None))
     local = basis.T @ obstacles.T  # (3, M): across the bed twice, and up
@@ -250,20 +249,12 @@ def in_grown_cap(caps: Caps, cap_index: np.ndarray, points: np.ndarray) -> np.nd
     return np.square(local / caps.scales[cap_index]).sum(1) <= OWN_SURFACE ** 2
 
 
-def bed_basis(up: np.ndarray) -> np.ndarray:
-    """(3, 3) columns: two unit vectors across the bed and ``up``, a right-handed frame."""
-    across = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
-    across /= np.linalg.norm(across)
-    return np.stack([across, np.cross(up, across), up], axis=1)
-
-
 def points_in_boxes(coords: np.ndarray, low: np.ndarray, high: np.ndarray, cell: float) -> tuple[np.ndarray, ...]:
     """Pairs (box, point) holding every point of ``coords`` (3, N) that lies in an axis-aligned box
     (``low``, ``high``: (B, 3)), and some near it: the points are bucketed once in cubes of ``cell``
     (sorted by cube, a radix sort), and each box takes the points of the cubes it overlaps. A KD-tree
     over the whole cloud costs more to build than the plan may take; buckets cost one sort."""
     coords = np.ascontiguousarray(coords)
-    cell = np.broadcast_to(np.asarray(cell, np.float64), (3,)).copy()
     origin = coords.min(1)
     span = coords.max(1) - origin
     while True:  # cube indices fit 16 bits, which numpy sorts by radix
@@ -271,7 +262,7 @@ def points_in_boxes(coords: np.ndarray, low: np.ndarray, high: np.ndarray, cell:
         if shape.prod() < 2 ** 16:
             break
         cell *= 1.25
-    cube = np.floor((coords - origin[:, None]) / cell[:, None])  # in floats: one cast to integers, not three
+    cube = np.floor((coords - origin[:, None]) / cell)  # in floats: one cast to integers, not three
     key = ((cube[0] * shape[1] + cube[1]) * shape[2] + cube[2]).astype(np.uint16)
     by_cube = np.argsort(key, kind="stable")
     per_cube = np.bincount(key, minlength=int(shape.prod()))
