@@ -116,9 +116,45 @@ def reading_zoom(model: MushroomNet, points: np.ndarray) -> float:
     return zoom * min(1.0, (spacing / model.point_spacing) ** -SPARSE_ZOOM_EXPONENT)
 
 
+@dataclass(frozen=True)
+class Reading:
+    """The network's first reading of a cloud in the bed frame (``first_reading``): which points it
+    read, at what zoom, their voxels and what it returned; ``predict`` goes on from it."""
+
+    kept: np.ndarray
+    """Indices of the points read (``at_training_density``)."""
+    zoom: float
+    coords: torch.Tensor
+    kept_to_voxel: torch.Tensor
+    zoomed_centroids: torch.Tensor
+    output: tuple
+    """``network_output``'s centroids, existence, centres and orientation values."""
+
+    @property
+    def cap_voxels(self) -> int:
+        """How many voxels the network takes for cap (existence over 0.5)."""
+        return int((self.output[1] > 0.5).sum())
+
+
+@torch.no_grad()
+def first_reading(model: MushroomNet, points: np.ndarray, thin: bool = True, zoom: float | None = None) -> Reading:
+    """One pass of the network over a non-empty cloud in the bed frame, as ``predict`` reads it first."""
+    points = np.asarray(points, np.float64)
+    kept = at_training_density(model, points) if thin else np.arange(len(points))
+    zoom = reading_zoom(model, points[kept]) if zoom is None else zoom
+    reach, grid = float(np.abs(points).max()), COORD_MAX * model.config.voxel / zoom
+    if not reach < grid:
+        raise ValueError(f"the cloud reaches {reach:.3g} m from the bed origin, beyond the voxel grid's "
+                         f"{grid:.0f} m: bring it near the origin")
+    device = next(model.parameters()).device
+    coords, kept_to_voxel, zoomed_centroids = network_input(zoom * points[kept], model.config.voxel, device)
+    return Reading(kept, zoom, coords, kept_to_voxel, zoomed_centroids,
+                   network_output(model, coords, zoomed_centroids, zoom))
+
+
 @torch.no_grad()
 def predict(model: MushroomNet, points: np.ndarray, thin: bool = True,
-            zoom: float | None = None, readings: int = LIVE_READINGS) -> VoxelPrediction:
+            zoom: float | None = None, readings: int = LIVE_READINGS, first: Reading | None = None) -> VoxelPrediction:
     """The network's encoding for a cloud in the bed frame; ``point_to_voxel`` covers every input point.
 
     The network was trained on clouds with one point per ``model.point_spacing`` (the synthetic
@@ -130,7 +166,8 @@ def predict(model: MushroomNet, points: np.ndarray, thin: bool = True,
     of AP@25 on the 5.1 mm val50). The network then reads the cloud scaled by ``zoom`` (default:
     ``reading_zoom``); what it returns is in the cloud's own metres again. With ``readings`` over 1 the
     network reads the cloud that many times, turned about the vertical, and each voxel's encoding is
-    the mean of the readings' (``LIVE_READINGS`` and ``FILE_READINGS`` say when).
+    the mean of the readings' (``LIVE_READINGS`` and ``FILE_READINGS`` say when). ``first``, the
+    cloud's ``first_reading`` made with the same ``thin`` and ``zoom``, saves that pass.
     """
     if not 1 <= readings <= MAX_READINGS:
         raise ValueError(f"readings must be 1-{MAX_READINGS}, got {readings}")
@@ -138,24 +175,18 @@ def predict(model: MushroomNet, points: np.ndarray, thin: bool = True,
     if len(points) == 0:
         empty = np.zeros((0, 3))
         return VoxelPrediction(empty, np.zeros(0), empty, np.zeros(0), np.zeros(0, np.int64))
-    kept = at_training_density(model, points) if thin else np.arange(len(points))
-    zoom = reading_zoom(model, points[kept]) if zoom is None else zoom
-    reach, grid = float(np.abs(points).max()), COORD_MAX * model.config.voxel / zoom
-    if not reach < grid:
-        raise ValueError(f"the cloud reaches {reach:.3g} m from the bed origin, beyond the voxel grid's "
-                         f"{grid:.0f} m: bring it near the origin")
-    device = next(model.parameters()).device
-    coords, kept_to_voxel, zoomed_centroids = network_input(zoom * points[kept], model.config.voxel, device)
-    centroids, existence, centers, orientation = network_output(model, coords, zoomed_centroids, zoom)
+    first = first_reading(model, points, thin, zoom) if first is None else first
+    kept, zoom = first.kept, first.zoom
+    centroids, existence, centers, orientation = first.output
     if readings > 1:
-        existence, centers, orientation = _averaged_readings(model, points[kept], zoom, readings, kept_to_voxel,
+        existence, centers, orientation = _averaged_readings(model, points[kept], zoom, readings, first.kept_to_voxel,
                                                              (existence, centers, orientation))
     if len(kept) == len(points):
-        point_to_voxel = kept_to_voxel.numpy()
+        point_to_voxel = first.kept_to_voxel.numpy()
     else:
-        point_to_voxel = _nearest_voxel(zoom * points, model.config.voxel, coords.cpu().numpy(),
-                                        zoomed_centroids.numpy())
-        point_to_voxel[kept] = kept_to_voxel.numpy()
+        point_to_voxel = _nearest_voxel(zoom * points, model.config.voxel, first.coords.cpu().numpy(),
+                                        first.zoomed_centroids.numpy())
+        point_to_voxel[kept] = first.kept_to_voxel.numpy()
     return VoxelPrediction(centroids, existence, centers, orientation, point_to_voxel)
 
 
@@ -261,12 +292,12 @@ def find_caps(prediction: VoxelPrediction, voxel: float, cluster_config: Cluster
 
 
 def detect_points(model: MushroomNet, points: np.ndarray, cluster_config: ClusterConfig = ClusterConfig(),
-                  zoom: float | None = None, readings: int = LIVE_READINGS) -> SceneResult:
+                  zoom: float | None = None, readings: int = LIVE_READINGS, first: Reading | None = None) -> SceneResult:
     """Caps in a cloud already in the bed frame (z up, metres), read ``readings`` times (``predict``) at
-    ``zoom`` (default: the model's)."""
+    ``zoom`` (default: the model's); ``first`` is its first reading when one was made already."""
     timings = {}
     start = time.perf_counter()
-    prediction = predict(model, points, zoom=zoom, readings=readings)
+    prediction = predict(model, points, zoom=zoom, readings=readings, first=first)
     timings["network"] = 1000 * (time.perf_counter() - start)
     voxel_labels, fit = find_caps(prediction, model.config.voxel, cluster_config, timings=timings)
     point_labels = voxel_labels[prediction.point_to_voxel]
@@ -275,6 +306,26 @@ def detect_points(model: MushroomNet, points: np.ndarray, cluster_config: Cluste
                        timings_ms=timings)
 
 
+
+
+def detect_up_side(model: MushroomNet, points: np.ndarray, T_input_bed: np.ndarray,
+                   cluster_config: ClusterConfig = ClusterConfig(), zoom: float | None = None,
+                   readings: int = LIVE_READINGS) -> tuple[np.ndarray, np.ndarray, SceneResult]:
+    """T_input_bed turned to the side of the bed plane its caps say is up (``fusion.bed.side_with_caps``),
+    the cloud in that bed frame, and its caps. The cloud is read once in each frame, and the chosen
+    frame's reading is the first of its ``readings``."""
+    from fusion.bed import side_with_caps
+
+    read = {}
+
+    def cap_voxels(T: np.ndarray) -> int:
+        bed_points = transform_points(np.linalg.inv(T), points)
+        read[T.tobytes()] = bed_points, first_reading(model, bed_points, zoom=zoom)
+        return read[T.tobytes()][1].cap_voxels
+
+    T_input_bed = side_with_caps(T_input_bed, cap_voxels)
+    bed_points, first = read[T_input_bed.tobytes()]
+    return T_input_bed, bed_points, detect_points(model, bed_points, cluster_config, zoom, readings, first)
 
 
 def transform_result(result: SceneResult, T_frame_bed: np.ndarray, frame: str) -> SceneResult:

@@ -51,8 +51,8 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from common.geometry import transform_points
-    from fusion.bed import not_a_bed, side_with_caps, too_many_caps
-    from perception.detect import detect_points, transform_result
+    from fusion.bed import not_a_bed, too_many_caps
+    from perception.detect import detect_points, detect_up_side, transform_result
     from perception.instances import ClusterConfig
     from perception.plan import plan_of_result
     from pipeline.clouds import load_cloud
@@ -78,13 +78,13 @@ def run(args: argparse.Namespace) -> int:
     bed_points = transform_points(np.linalg.inv(T_input_bed), points)
     _refuse_unless_forced(args, not_a_bed(bed_points))
     refuse_to_replace([out, rrd], args.overwrite)
-    if frame == "input":  # the bed plane was found here: which side is up, its caps say
-        T_turned = side_with_caps(T_input_bed, _cap_voxels(model, points, args.zoom))
-        if T_turned is not T_input_bed:
-            T_input_bed, bed_points = T_turned, transform_points(np.linalg.inv(T_turned), points)
+    clustering = ClusterConfig(method=args.method)
     try:
-        result = detect_points(model, bed_points, ClusterConfig(method=args.method), zoom=args.zoom,
-                               readings=args.readings)
+        if frame == "input":  # the bed plane was found here: which side is up, its caps say
+            T_input_bed, bed_points, result = detect_up_side(model, points, T_input_bed, clustering, args.zoom,
+                                                             args.readings)
+        else:
+            result = detect_points(model, bed_points, clustering, zoom=args.zoom, readings=args.readings)
     except ValueError as error:
         raise CliError(str(error)) from None
     _refuse_unless_forced(args, too_many_caps(bed_points, len(result.caps)))
@@ -108,20 +108,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 UNIT_NAMES = {"m": "metres", "cm": "centimetres", "mm": "millimetres"}
-
-
-def _cap_voxels(model, points, zoom):
-    """How many cap voxels the network sees in ``points`` put in a given bed frame, read once: the
-    evidence by which ``fusion.bed`` tells the bed's up side from its underside."""
-    import numpy as np
-
-    from common.geometry import transform_points
-    from perception.detect import predict
-
-    def seen(T_input_bed: np.ndarray) -> int:
-        bed_points = transform_points(np.linalg.inv(T_input_bed), points)
-        return int((predict(model, bed_points, zoom=zoom, readings=1).existence > 0.5).sum())
-    return seen
 
 
 def _bed_frame(args: argparse.Namespace, cloud):
