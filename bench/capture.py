@@ -16,7 +16,8 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from capture.mcap_io import McapRecorder, McapSource  # noqa: E402
+from capture.mcap.reader import McapSource  # noqa: E402
+from capture.mcap.writer import McapRecorder  # noqa: E402
 from capture.virtual import sense_view  # noqa: E402
 from pipeline.sources import VirtualBed, virtual_bed_source  # noqa: E402
 from pipeline.process import reuse_freed_memory  # noqa: E402

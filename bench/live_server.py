@@ -26,7 +26,7 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 import websockets  # noqa: E402
 
-from capture.mcap_io import McapSource  # noqa: E402
+from capture.mcap.reader import McapSource  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 SUBPROTOCOL = "foxglove.sdk.v1"

@@ -33,7 +33,8 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from capture.mcap_io import McapRecorder, McapSource  # noqa: E402
+from capture.mcap.reader import McapSource  # noqa: E402
+from capture.mcap.writer import McapRecorder  # noqa: E402
 from capture.source import Source  # noqa: E402
 from perception.detect import LIVE_READINGS, detect_points  # noqa: E402
 from perception.weights import DEFAULT_WEIGHTS  # noqa: E402

@@ -18,6 +18,15 @@ class SourceError(RuntimeError):
     """A source could not be opened or stopped delivering (unplugged camera, unreadable file)."""
 
 
+@dataclass
+class StopRequest:
+    """A request to end a loop after its current frame, with the signal that asked for it: set by
+    ``pipeline.signals.graceful_stop``; recording and run loops check ``requested``."""
+
+    requested: bool = False
+    signal: str | None = None
+
+
 class Source(abc.ABC):
     """Frames in time order. ``read()`` returns None once the stream has ended."""
 

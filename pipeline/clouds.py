@@ -65,7 +65,7 @@ def _load_cloud(path: Path, units: str) -> LoadedCloud:
                              f"{str(error).splitlines()[0] if str(error) else type(error).__name__}") from None
         in_bed = True
     elif suffix == ".mcap":
-        from capture.mcap_io import read_point_cloud
+        from capture.mcap.reader import read_point_cloud
         from capture.source import SourceError
 
         try:

@@ -93,7 +93,7 @@ def recorded_readings(session: Path, expected: list[dict] | None) -> int:
 def expected_documents(session: Path) -> list[dict]:
     """The detection documents a recording carries: its /perception/mushrooms_json messages, or, for a
     device file or a session without them, ``<session stem>.expected.json`` beside it (a list)."""
-    from capture.mcap_io import read_documents
+    from capture.mcap.reader import read_documents
     from capture.source import SourceError
 
     sidecar = session.with_name(session.stem + ".expected.json")
@@ -117,7 +117,7 @@ def run_replay(session: Path, model, out_dir: Path, rrd: Path | None, options: R
     ``out_dir`` (replay.mcap: the session's frames with the new fusion and perception topics;
     detections.json: the last unit's caps) and ``rrd``; with ``check``, compare every unit's caps with
     ``expected``, by default those the session recorded."""
-    from capture.mcap_io import McapSource, TruncatedRecordingWarning, read_fused_units
+    from capture.mcap.reader import McapSource, TruncatedRecordingWarning, read_fused_units
     from capture.source import Paced, SourceError
     from fusion.cloud import FusedCloud
     from fusion.turntable import Rig

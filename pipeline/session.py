@@ -27,7 +27,7 @@ class Outputs:
     """The recording's name in the viewer (the session's)."""
     quiet: bool = False
     publish_to: Any = None
-    """A foxglove.Context a live server serves (``capture.mcap_io.serve_session``): every channel of the
+    """A foxglove.Context a live server serves (``capture.mcap.writer.serve_session``): every channel of the
     session MCAP is published on it as it is written, with or without ``record``."""
 
 
@@ -36,7 +36,7 @@ def run_chain(source: Source, model, config: RunConfig, outputs: Outputs, sensor
               stop_requested: Callable[[], str | None] = lambda: None, overwrite: bool = True) -> RunSummary:
     """Run ``source`` through fusion and perception into the ``outputs``; raises what a stage raised,
     after every output is finalised."""
-    from capture.mcap_io import McapRecorder, SessionChannels
+    from capture.mcap.writer import McapRecorder, SessionChannels
     from pipeline.rerun_sink import default_blueprint, rerun_stream
     from pipeline.sinks import ConsoleSink, JsonSink, McapSink, RerunSink
 

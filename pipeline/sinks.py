@@ -92,14 +92,14 @@ class McapSink(Sink):
         """Empty clouds on the fused-cloud and cap-outline topics at the first frame: a viewer that
         meets a topic before its first message knows no frame for it (Rerun flags the 3D view), so
         both say "world" from the start. Readers skip empty clouds."""
-        from capture.mcap_io import CAP_OUTLINES_TOPIC, FUSED_CLOUD_TOPIC
+        from capture.mcap.schema import CAP_OUTLINES_TOPIC, FUSED_CLOUD_TOPIC
 
         for topic in (FUSED_CLOUD_TOPIC, CAP_OUTLINES_TOPIC):
             self.recorder.write_point_cloud(topic, np.zeros((0, 3), np.float32), log_time_ns, "world",
                                             colors=np.zeros((0, 3), np.uint8))
 
     def fused(self, unit: FusedUnit) -> None:
-        from capture.mcap_io import BED_TRANSFORM_TOPIC, FUSED_CLOUD_TOPIC, UNIT_TOPIC
+        from capture.mcap.schema import BED_TRANSFORM_TOPIC, FUSED_CLOUD_TOPIC, UNIT_TOPIC
 
         t = unit.last_frame_ns
         with self._lock:
@@ -111,7 +111,7 @@ class McapSink(Sink):
                                                   "frame_ids": list(unit.cloud.frame_ids)}, t)
 
     def detected(self, detection: Detection) -> None:
-        from capture.mcap_io import CAP_OUTLINES_TOPIC, CAPS_TOPIC, DETECTIONS_TOPIC, PLAN_JSON_TOPIC, PLAN_TOPIC
+        from capture.mcap.schema import CAPS_TOPIC, CAP_OUTLINES_TOPIC, DETECTIONS_TOPIC, PLAN_JSON_TOPIC, PLAN_TOPIC
 
         t = detection.unit.last_frame_ns
         document = {**detection.document, "unit": detection.unit.index}

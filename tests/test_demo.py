@@ -6,7 +6,7 @@ import re
 import numpy as np
 import pytest
 
-from capture.mcap_io import McapSource, read_point_cloud
+from capture.mcap.reader import McapSource, read_point_cloud
 from helpers import rerun_matrix, rrd_entity_rows, rrd_values, write_tiny_weights
 from test_detect_cli import run
 

@@ -269,7 +269,7 @@ def test_a_stray_point_does_not_make_a_metre_cloud_millimetres(tmp_path, scene_p
 
 
 def test_fused_clouds_are_read_from_mcap(tmp_path, scene_ply, weights):
-    from capture.mcap_io import McapRecorder
+    from capture.mcap.writer import McapRecorder
 
     _, scene = scene_ply
     with McapRecorder(tmp_path / "fused.mcap") as recorder:

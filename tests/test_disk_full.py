@@ -10,7 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from capture.mcap_io import McapRecorder, McapSource, RecordingError, recover_recording
+from capture.mcap.reader import McapSource
+from capture.mcap.recovery import recover_recording
+from capture.mcap.writer import McapRecorder, RecordingError
 
 RECORDINGS = Path(__file__).resolve().parents[1] / "recordings"
 

@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import websockets
 
-from capture.mcap_io import PLAN_JSON_TOPIC, PLAN_TOPIC, McapSource, read_documents
+from capture.mcap.reader import McapSource, read_documents
+from capture.mcap.schema import PLAN_JSON_TOPIC, PLAN_TOPIC
 
 ROOT = Path(__file__).resolve().parent.parent
 SUBPROTOCOL = "foxglove.sdk.v1"

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from capture.frames import CameraIntrinsics, DepthFrame
-from capture.mcap_io import McapRecorder, McapSource, read_documents, read_fused_units
+from capture.mcap.reader import McapSource, read_documents, read_fused_units
+from capture.mcap.writer import McapRecorder
 from capture.source import Source, SourceError
 from helpers import rrd_entity_rows
 from fusion.cloud import UnitBuilder

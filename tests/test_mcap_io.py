@@ -20,7 +20,8 @@ from mcap_ros2.decoder import DecoderFactory as Ros2DecoderFactory
 from scipy.spatial.transform import Rotation
 
 from capture.frames import CameraIntrinsics, DepthFrame
-from capture.mcap_io import McapRecorder, McapSource, TruncatedRecordingWarning, record
+from capture.mcap.reader import McapSource, TruncatedRecordingWarning
+from capture.mcap.writer import McapRecorder, record
 from capture.source import Source, SourceError
 from common.geometry import look_at
 
@@ -218,16 +219,17 @@ def test_record_stops_after_its_duration(tmp_path):
 
 
 def test_a_stop_signal_before_the_first_frame_leaves_no_file(tmp_path, monkeypatch):
-    import capture.mcap_io
+    import capture.mcap.writer
+    from pipeline.signals import graceful_stop
 
     class SignalledWhileOpening(McapRecorder):
         def __init__(self, *args, **kwargs):
             super().__init__(*args, **kwargs)
             signal.raise_signal(signal.SIGTERM)
 
-    monkeypatch.setattr(capture.mcap_io, "McapRecorder", SignalledWhileOpening)
-    with pytest.raises(KeyboardInterrupt):
-        record(TickSource(), tmp_path / "r.mcap", progress=False)
+    monkeypatch.setattr(capture.mcap.writer, "McapRecorder", SignalledWhileOpening)
+    with pytest.raises(KeyboardInterrupt), graceful_stop() as stop:
+        record(TickSource(), tmp_path / "r.mcap", progress=False, stop=stop)
     assert not list(tmp_path.iterdir())
 
 
@@ -237,12 +239,14 @@ import sys
 signal.signal(signal.SIGINT, signal.default_int_handler)  # as in an interactive shell, even if started ignoring it
 sys.path.insert(0, {tests!r})
 from test_mcap_io import TickSource
-from capture.mcap_io import record
+from capture.mcap.writer import record
+from pipeline.signals import graceful_stop
 
 def progress(count, frame):
     print("wrote", count, flush=True)
 
-summary = record(TickSource(), {path!r}, progress=False, on_frame=progress)
+with graceful_stop() as stop:
+    summary = record(TickSource(), {path!r}, progress=False, on_frame=progress, stop=stop)
 print("done", summary.frames, summary.stopped_by, flush=True)
 """
 
@@ -286,9 +290,9 @@ import functools
 import sys
 import threading
 sys.path.insert(0, {tests!r})
-import capture.mcap_io
+import capture.mcap.writer
 from test_mcap_io import TickSource
-capture.mcap_io.McapRecorder = functools.partial(capture.mcap_io.McapRecorder, chunk_size={chunk_size})
+capture.mcap.writer.McapRecorder = functools.partial(capture.mcap.writer.McapRecorder, chunk_size={chunk_size})
 
 class Stalls(TickSource):
     def read(self):
@@ -296,8 +300,8 @@ class Stalls(TickSource):
             threading.Event().wait()  # a camera that stops delivering: record waits here until killed
         return super().read()
 
-capture.mcap_io.record(Stalls(), {path!r}, progress=False,
-                       on_frame=lambda count, frame: print("wrote", count, flush=True))
+capture.mcap.writer.record(Stalls(), {path!r}, progress=False,
+                           on_frame=lambda count, frame: print("wrote", count, flush=True))
 """
 
 

@@ -65,7 +65,9 @@ def test_fewer_than_one_or_more_than_twelve_readings_are_refused(model, bed_poin
 
 def _frames_and_documents(path, documents):
     """A session with the first two frames of a recording and these detection documents."""
-    from capture.mcap_io import DETECTIONS_TOPIC, McapRecorder, McapSource
+    from capture.mcap.reader import McapSource
+    from capture.mcap.schema import DETECTIONS_TOPIC
+    from capture.mcap.writer import McapRecorder
     from pipeline.recordings import RECORDINGS_DIR
 
     with McapSource(RECORDINGS_DIR / "single-view.mcap") as frames, McapRecorder(path) as recorder:

@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from capture.mcap_io import McapSource
+from capture.mcap.reader import McapSource
 from pipeline.sources import VirtualBed, virtual_bed_source
 from test_detect_cli import one_line_error, run
 
@@ -176,7 +176,7 @@ def test_calibrate_recovers_the_virtual_turntable(tmp_path):
 
 
 def test_calibrate_warns_when_the_session_is_less_than_a_turn(tmp_path):
-    from capture.mcap_io import McapRecorder
+    from capture.mcap.writer import McapRecorder
 
     frames = list(McapSource(RECORDINGS / "turntable-12.mcap"))
     part = tmp_path / "part.mcap"

@@ -1,5 +1,5 @@
 """A recording whose process died (power loss, SIGKILL) is rebuilt into a valid MCAP with every whole
-message (capture/mcap_io.py ``recover_recording``)."""
+message (``capture.mcap.recovery.recover_recording``)."""
 
 import os
 import signal
@@ -12,7 +12,8 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from capture.mcap_io import McapSource, recover_recording
+from capture.mcap.reader import McapSource
+from capture.mcap.recovery import recover_recording
 
 
 def _one_message_per_chunk(path: Path, messages: int) -> list[tuple[int, int]]:

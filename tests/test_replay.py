@@ -7,7 +7,8 @@ import shutil
 import numpy as np
 import pytest
 
-from capture.mcap_io import McapRecorder, McapSource, read_documents, read_fused_units
+from capture.mcap.reader import McapSource, read_documents, read_fused_units
+from capture.mcap.writer import McapRecorder
 from helpers import rrd_entity_rows, rrd_timelines
 from pipeline.recordings import RECORDINGS, RECORDINGS_DIR, expected_path
 from test_detect_cli import run

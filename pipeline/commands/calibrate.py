@@ -22,7 +22,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from capture.mcap_io import McapSource
+    from capture.mcap.reader import McapSource
     from capture.source import SourceError
     from fusion.turntable import estimate_rig
 

@@ -143,7 +143,7 @@ def _refuse_unless_forced(args: argparse.Namespace, reason: str | None) -> None:
 
 def _is_raw_session(path: Path) -> bool:
     """A recording of depth frames (its fused cloud, if any, could not be read): ``detect`` fuses it first."""
-    from capture.mcap_io import McapSource
+    from capture.mcap.reader import McapSource
     from capture.source import SourceError
 
     try:
@@ -155,7 +155,7 @@ def _is_raw_session(path: Path) -> bool:
 
 def _detect_session(args: argparse.Namespace) -> int:
     """``detect`` on a session of raw frames: fused and detected through the runner, caps in the world frame."""
-    from capture.mcap_io import McapSource
+    from capture.mcap.reader import McapSource
     from capture.source import SourceError
     from pipeline.runner import PerceptionStage, RunConfig
     from pipeline.session import Outputs, run_chain

@@ -85,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     let_idle_threads_sleep()  # before torch and Open3D load: the chain's stages share the cores
     from contextlib import ExitStack
 
-    from capture.mcap_io import serve_session
+    from capture.mcap.writer import serve_session
     from fusion.turntable import Rig
 
     files = _checked_outputs(args)
@@ -111,7 +111,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _run_live(args: argparse.Namespace, model, rig, pick, files: tuple, publish_to) -> int:
     """The camera through the chain into ``files`` (--record, --rrd, --detections) and a live server."""
-    from capture.mcap_io import RecordingError, graceful_stop
+    from capture.mcap.writer import RecordingError
+    from pipeline.signals import graceful_stop
     from capture.source import SourceError
     from fusion.cloud import FusionStage
     from fusion.turntable import Rig

@@ -26,8 +26,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from capture.mcap_io import RecordingError, record
+    from capture.mcap.writer import RecordingError, record
     from capture.source import SourceError
+    from pipeline.signals import graceful_stop
     from pipeline.sources import make_source
 
     out = writable_file(args.out)
@@ -35,9 +36,9 @@ def run(args: argparse.Namespace) -> int:
     written = [0]
     try:
         source = make_source(args.camera, args.serial, args.seed, args.views)
-        with source:
+        with source, graceful_stop() as stop:
             summary = record(source, out, args.duration, progress=not args.quiet, overwrite=args.overwrite,
-                             on_frame=lambda frames, _: written.__setitem__(0, frames))
+                             on_frame=lambda frames, _: written.__setitem__(0, frames), stop=stop)
     except (SourceError, ValueError) as error:
         kept = (f"; the {written[0]} frames recorded so far are in {out}" if written[0]
                 else "; nothing was recorded" + (f", {out} is as it was" if out.exists() else ""))

@@ -18,7 +18,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from capture.mcap_io import recover_recording
+    from capture.mcap.recovery import recover_recording
 
     partial = Path(args.partial)
     if not partial.is_file():

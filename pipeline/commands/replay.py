@@ -60,7 +60,8 @@ def run(args: argparse.Namespace) -> int:
     from pipeline.process import let_idle_threads_sleep
 
     let_idle_threads_sleep()  # before torch and Open3D load: the chain's stages share the cores
-    from capture.mcap_io import RecordingError, graceful_stop
+    from capture.mcap.writer import RecordingError
+    from pipeline.signals import graceful_stop
     from pipeline.check import Tolerances
     from pipeline.flags import config_from_args
     from pipeline.replay import ReplayError, ReplayOptions, read_expected, run_replay
