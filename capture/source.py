@@ -1,7 +1,8 @@
 """One way to get frames from anything: the ``Source`` interface, its configs, and discovery.
 
 Modelled on LeRobot's camera drivers: a config dataclass per kind, a small abstract class with
-open / read / close (and iteration, and ``with``), and ``find_cameras()`` to list what is attached.
+open / read / close (and iteration, and ``with``); ``capture.cameras`` registers the kinds and finds
+what is attached.
 RealSense, OAK, the virtual camera and MCAP replay all yield the same ``DepthFrame``.
 """
 
@@ -65,18 +66,6 @@ class CameraInfo:
     kind: str
     serial: str
     name: str
-
-
-def find_cameras() -> list[CameraInfo]:
-    """Every attached RealSense and OAK camera (an empty list when none, or their library is absent)."""
-    found: list[CameraInfo] = []
-    for module_name in ("capture.realsense", "capture.oak"):
-        try:
-            module = __import__(module_name, fromlist=["find_cameras"])
-        except ImportError:
-            continue
-        found.extend(module.find_cameras())
-    return found
 
 
 class Paced(Source):

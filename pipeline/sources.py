@@ -6,9 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from capture.cameras import camera_kind
 from capture.source import Source
-
-CAMERAS = ("realsense", "oak", "virtual")
 
 
 @dataclass(frozen=True)
@@ -49,7 +48,9 @@ def make_source(camera: str, serial: str | None = None, seed: int = 0, views: in
                 playback: str | None = None, live: bool = False) -> Source:
     """A source for ``mushroom-pose record`` / ``live``: realsense (a camera, or a recorded device
     file through the same driver), oak or virtual. ``live`` paces the virtual camera in real time at
-    its frame rate with wall-clock timestamps and keeps turning, so it behaves as a real one."""
+    its frame rate with wall-clock timestamps and keeps turning, so it behaves as a real one. The
+    hardware kinds come from the registry (``capture.cameras``); the virtual camera's bed from the
+    synthetic generator."""
     if camera == "virtual":
         import time
 
@@ -58,12 +59,9 @@ def make_source(camera: str, serial: str | None = None, seed: int = 0, views: in
         setup = VirtualBed(seed=seed, views=views, start_ns=time.time_ns() if live else 0, turns=None if live else 1)
         source = virtual_bed_source(setup)[0]
         return Paced(source) if live else source
-    if camera == "realsense":
-        from capture.realsense import RealSenseConfig, RealSenseSource
-
-        return RealSenseSource(RealSenseConfig(serial=serial, playback=playback))
-    if camera == "oak":
-        from capture.oak import OakConfig, OakSource
-
-        return OakSource(OakConfig(mxid=serial))
-    raise ValueError(f"unknown camera {camera!r}; choose one of {', '.join(CAMERAS)}")
+    kind = camera_kind(camera)
+    config_class, source_class = kind.classes()
+    fields = {kind.device_field: serial}
+    if playback is not None:
+        fields["playback"] = playback
+    return source_class(config_class(**fields))

@@ -185,14 +185,13 @@ class Example:
 
 def test_the_parser_restates_its_choices_as_the_libraries_define_them():
     from perception.synthetic.scene import VISIBILITY_MODELS
-    from pipeline.commands.common import CAMERAS, FILE_READINGS, MAX_READINGS, SHIPPED_ZOOM, SPACING_HELP, VISIBILITY
+    from pipeline.commands.common import FILE_READINGS, MAX_READINGS, SHIPPED_ZOOM, SPACING_HELP, VISIBILITY
     from perception import detect
     from perception.weights import DEFAULT_WEIGHTS
     from perception.synthetic.scene import SceneConfig
     from perception.weights import load_weights
-    from pipeline import sources
 
-    assert (CAMERAS, VISIBILITY) == (sources.CAMERAS, VISIBILITY_MODELS)
+    assert VISIBILITY == VISIBILITY_MODELS
     assert SPACING_HELP.startswith(f"{SceneConfig.spacing:g},")
     assert SHIPPED_ZOOM == load_weights(DEFAULT_WEIGHTS)[0].inference_zoom
     from pipeline.replay import ReplayOptions

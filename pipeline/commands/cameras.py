@@ -13,7 +13,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from capture.source import find_cameras
+    from capture.cameras import find_cameras
 
     cameras = find_cameras()
     if not cameras:

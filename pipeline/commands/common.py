@@ -181,8 +181,6 @@ SHIPPED_ZOOM = 1.2
 """The zoom the shipped model's weights record (trained with --scale-jitter 1.05 1.35)."""
 FILE_READINGS = 4
 """perception.detect.FILE_READINGS: how many turned readings of a cloud ``detect`` and ``eval`` average."""
-CAMERAS = ("realsense", "oak", "virtual")
-"""pipeline.sources.CAMERAS: the depth cameras ``record`` and ``live`` read."""
 VISIBILITY = ("hpr", "camera", "fused", "katz")
 """perception.synthetic.scene.VISIBILITY_MODELS: how a synthetic bed becomes points."""
 

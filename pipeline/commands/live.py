@@ -7,7 +7,8 @@ import sys
 import time
 from pathlib import Path
 
-from pipeline.commands.common import (CAMERAS, STOP_EXIT, CliError, CommandFailed, add_model_flag, add_overwrite_flag,
+from capture.cameras import CAMERAS
+from pipeline.commands.common import (STOP_EXIT, CliError, CommandFailed, add_model_flag, add_overwrite_flag,
                                       add_pick_flags, pick_config,
                                       add_quiet_flag, add_threads_flag, load_model, parse_readings, parse_seed,
                                       parse_threads, positive, refuse_to_replace, torch_threads, writable_file,

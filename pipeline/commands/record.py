@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from pipeline.commands.common import (CAMERAS, STOP_EXIT, CliError, CommandFailed, add_overwrite_flag, add_quiet_flag,
+from capture.cameras import CAMERAS
+from pipeline.commands.common import (STOP_EXIT, CliError, CommandFailed, add_overwrite_flag, add_quiet_flag,
                                       parse_seed, positive, refuse_to_replace, writable_file)
 
 NAME = "record"
