@@ -63,37 +63,29 @@ def at_training_density(model: MushroomNet, points: np.ndarray) -> np.ndarray:
 
 
 LIVE_READINGS = 1
-"""How many times a cloud is read where someone waits for each answer: the live runner, the demo, and
-the library's default (``predict``'s ``readings``: each further reading turned another 360/N degrees
-about the vertical, their encodings averaged). Each reading is a pass of the network: with four, a
-live turntable turn's caps come 1.7 s after its last frame instead of 0.6 s, over the 1.0 s target
-(bench/pipeline.py --readings 4), so the runner reads once."""
+"""How many times a cloud is read where someone waits for each answer (the live runner, the demo, and
+``predict``'s default): one pass of the network keeps a live turn's caps within the 1.0 s target."""
 
 FILE_READINGS = 4
-"""How many times ``detect`` and ``eval`` read a cloud, where no one waits for the answer. The voxel
-grid lies over each cap differently in every reading, and one reading's caps depend on how it falls;
-four readings averaged steady them. On the real cloud of ../shared/real/ they score a higher F1 over
-six turns at every density, mostly by fewer false detections (0.876 against 0.862 as scanned, 0.859
-against 0.848 thinned to 5 mm, bench/real.py --turns 6), and on val50 / test50 a higher AP@25 (99.59 /
-99.60 against 99.50 / 99.50 %, model card)."""
+"""How many times ``detect`` and ``eval`` read a cloud, each reading turned another 90 degrees about the
+vertical: the voxel grid falls differently over each cap in every reading, and their average gives
+steadier caps with fewer false detections (model card, "How the fit's constants were chosen")."""
 
 MAX_READINGS = 12
-"""The most readings a command takes: each is a pass of the network, and on the real cloud 8 readings
-steady the caps no more than 6 do (model card)."""
+"""The most readings a command takes: each is a pass of the network, and more than six steady the caps
+no further."""
 
 OPERATING_SPACING = 0.0035
-"""Metres: beyond this point spacing caps under 30 mm across are found less reliably (bench/range.py,
-caps 15-30 mm: AP@25 95.2 % at 3 mm, 77.4 % at 4 mm, 59.3 % at 5 mm)."""
+"""Metres: beyond this point spacing caps under 30 mm across are found less reliably (the model card's
+operating range, ``bench/range.py``)."""
 OPERATING_DIAMETER = 0.080
-"""Metres: caps wider than this are found less reliably (bench/range.py, caps 80-100 mm: AP@25 86.7 % on
-clouds sampled every 1 mm, 99.9-100 % at 3-5 mm; over 100 mm at 1-3 mm caps are split or missed)."""
+"""Metres: caps wider than this are found less reliably (the same table)."""
 NEIGHBOUR_PER_SPACING = 0.645
 """Median distance from a point of a synthetic bed to its nearest neighbour, over the bed's point
-spacing (1.94 mm on val50's 3 mm beds, 3.24 mm on the same beds at 5 mm)."""
+spacing: how a cloud's measured neighbour distance is read as a generator's spacing."""
 SPARSE_ZOOM_EXPONENT = 0.56
-"""How much lower a sparse cloud is read: zoom x (spacing ratio)^-0.56, so val50's beds made at 5 mm
-spacing (a ratio of 1.67) are read at 0.9 instead of 1.2, where their AP@50 is highest (20 beds:
-54.6 % at 1.2, 85.7 % at 1.0, 89.4 % at 0.9, 83.3 % at 0.8)."""
+"""How much lower a sparse cloud is read: zoom x (spacing ratio)^-0.56, so a bed sampled every 5 mm is
+read at 0.9 instead of 1.2, where its AP@50 peaks (model card, "How the fit's constants were chosen")."""
 
 
 def point_spacing(points: np.ndarray, samples: int = 5000) -> float:
@@ -159,11 +151,9 @@ def predict(model: MushroomNet, points: np.ndarray, thin: bool = True,
 
     The network was trained on clouds with one point per ``model.point_spacing`` (the synthetic
     scenes' voxel; None: unknown, never thin). A much denser cloud (fused, or straight from a camera)
-    is an input it never saw: a model trained at 5.1 mm spacing, a sparse shell of voxels, falls from
-    AP@25 0.90 to 0.54 on virtual 4-view beds. So with ``thin``, such a cloud is first thinned
-    (``at_training_density``), and points whose voxel lost its points take the prediction of the
-    nearest kept voxel. Clouds at training density are used as they are (thinning them costs 3 points
-    of AP@25 on the 5.1 mm val50). The network then reads the cloud scaled by ``zoom`` (default:
+    is an input it never saw, and the network misreads it. So with ``thin``, such a cloud is first
+    thinned (``at_training_density``), and points whose voxel lost its points take the prediction of
+    the nearest kept voxel. Clouds at training density are used as they are. The network then reads the cloud scaled by ``zoom`` (default:
     ``reading_zoom``); what it returns is in the cloud's own metres again. With ``readings`` over 1 the
     network reads the cloud that many times, turned about the vertical, and each voxel's encoding is
     the mean of the readings' (``LIVE_READINGS`` and ``FILE_READINGS`` say when). ``first``, the

@@ -4,14 +4,10 @@ MeanShift (default) groups the "collapsed" points p + predicted residual, which 
 cap centres; DBSCAN groups the existence points themselves and relies on the gap the touching rule
 teaches the network to leave between caps. Both come from scikit-learn.
 
-MeanShift's cost is scikit-learn's per-call overhead: one neighbour query per seed and step, about 185
-a bed. So the seeds climb together first, one query for all per step (``_climb``), and scikit-learn
-then takes one step per distinct seed and one query per centre to drop duplicates, about 61 queries a
-bed with the same labels (val50: 46.8 ms a bed, against 60.9 ms when the seeds climb only 4 steps
-together and 113.6 ms when scikit-learn climbs each seed alone). scikit-learn 1.9 runs every queried
-array through narwhals' dataframe checks, which makes the clustering of a val50 bed 155-160 ms against
-83-92 ms with 1.8 (same labels, MeanShift and DBSCAN, on all of val50), so ``pyproject.toml`` keeps it
-below 1.9.
+scikit-learn's MeanShift makes a neighbour query per seed and step, and each call has a fixed
+overhead; so the seeds climb together first, one query for all per step (``_climb``), and
+scikit-learn then takes the last step of each and drops duplicate centres: the same labels in about
+a third of the queries (``bench/perception.py`` times both).
 """
 
 from __future__ import annotations
@@ -53,12 +49,8 @@ class ClusterConfig:
     seeding: str = "peaks"
     """MeanShift seeds: "bins" = scikit-learn's bin seeding (every bandwidth-sized bin holding
     min_points / 2 collapsed points); "peaks" = only those of them that hold at least as many points as
-    each of their 6 face neighbours, then a second pass over the points left over. A cap's collapsed
-    points straddle several bins, which all climb to the same centre, and scikit-learn runs each seed
-    as its own Python loop, where fewer seeds would be faster; with the seeds climbing together
-    (``_climb``) both take about as long (``bench/perception.py`` prints both). Peaks are the default
-    for the second pass's small caps: val50 AP@25 99.64 % against 99.60 % with bins (``dense7k`` +
-    ``tune1400``, read at zoom 1.05)."""
+    each of their 6 face neighbours, then a second pass over the points left over, which finds small
+    caps beside big ones that have no peak bin of their own."""
 
     def __post_init__(self) -> None:
         if self.merge_ratio is not None and not self.merge_ratio > 0:
@@ -115,8 +107,7 @@ def _mean_shift(collapsed: np.ndarray, bandwidth: float, min_points: int, seedin
     if seeding != "peaks":
         return labels
     # a small cap right beside a big one may have no peak bin of its own: seed the peaks of what is
-    # left over (bins of min_points, so scattered leftovers seed nothing: 97 against 136 ms a bed,
-    # same AP on val50) and climb on all points, so that seeds in a big cap's tail climb back to its
+    # left over (bins of min_points, so that scattered leftovers seed nothing) and climb on all points, so that seeds in a big cap's tail climb back to its
     # centre; centres a bandwidth away from every first-pass centre are new caps
     left = np.flatnonzero(labels < 0)
     seeds = peak_seeds(collapsed[left], bandwidth, min_points)
@@ -133,8 +124,8 @@ def _mean_shift(collapsed: np.ndarray, bandwidth: float, min_points: int, seedin
 
 def peak_seeds(points: np.ndarray, bin_size: float, min_bin_freq: int = 1) -> np.ndarray:
     """Centres of the bins (scikit-learn's ``get_bin_seeds`` grid) that hold ``min_bin_freq`` points or
-    more and at least as many as each of their 6 face neighbours (testing all 26 neighbours lost more
-    small caps beside big ones: 0.2 points less AP@25 on val50, measured without the second pass)."""
+    more and at least as many as each of their 6 face neighbours (all 26 would lose small caps beside
+    big ones)."""
     bins, counts = np.unique(np.round(points / bin_size).astype(np.int64), axis=0, return_counts=True)
     keep = counts >= min_bin_freq
     bins, counts = bins[keep], counts[keep]

@@ -85,19 +85,15 @@ NETWORK_PRESETS = {
     "slim-no": NetworkConfig(channels=(32, 48, 64, 96), up_channels=(48, 48, 64, 64), first_kernel=3, normals=True,
                              offsets=True),
 }
-# slim-no with the coarser levels (stride 2 to 8) wider and the full-resolution ones unchanged: the
-# training step costs about 1.2 times as much, the forward pass 1.05 times (model card, "Tried and dropped")
+# slim-no with the coarser levels (stride 2 to 8) wider and the full-resolution ones unchanged
 NETWORK_PRESETS["wide-no"] = replace(NETWORK_PRESETS["slim-no"], channels=(32, 64, 128, 192), up_channels=(48, 48, 96, 128))
 # the paper's Table 2 ablations: slim-no predicting the centre or the axis explicitly
 NETWORK_PRESETS["slim-no-explicit-centre"] = replace(NETWORK_PRESETS["slim-no"], encoding="explicit-centre")
 NETWORK_PRESETS["slim-no-explicit-orientation"] = replace(NETWORK_PRESETS["slim-no"], encoding="explicit-orientation")
-# slim-no with a 5^3 first convolution: at 4.1 mm voxels (4.5 mm read at zoom 1.1), points 5.1 mm apart
-# leave a voxel on the cap surface about 5 of its 26 neighbours, and a 5^3 kernel reaches about 16
-# (model card, "Tried and dropped")
+# slim-no with a 5^3 first convolution, which reaches more of a sparse cap's surface voxels than 3^3
 NETWORK_PRESETS["slim-no-k5"] = replace(NETWORK_PRESETS["slim-no"], first_kernel=5)
 # slim-no with 32 channels in the full-resolution up block instead of 48: that block's two 3^3
-# convolutions on every voxel take a third of slim-no's time. 4 training beds, 2 threads, medians of 5
-# rounds: a training step 605 against 707 ms, the forward pass 222 against 261 ms
+# convolutions on every voxel take a third of slim-no's time
 NETWORK_PRESETS["lean-no"] = replace(NETWORK_PRESETS["slim-no"], up_channels=(48, 32, 64, 64))
 
 

@@ -5,22 +5,18 @@ least squares (P - c) lambda = Y_o gives lambda = u / s_z: u = lambda / |lambda|
 the cluster's mean predicted centre c', off by some e = c' - c, and then Y_o = (P - c') lambda +
 lambda . e exactly: so we solve for an intercept too, [P - c', 1] (lambda, b) = Y_o. The axis no
 longer depends on e, and b / |lambda| = u . e is the centre's error along the axis, which we take off.
-Without the intercept, e biased the axis towards the vertical (steep caps came out 6 degrees too
-upright, median on val50).
+Without the intercept, e biases the axis towards the vertical.
 
 With the axis known, the ellipsoid equation gives the size (and ``with_rim_radii`` then measures the
 radius on the cap's own points, ``RIM_QUANTILE``). The paper fixes s_z = 2 s / 3 and fits
 one s (``height="fixed"``); by default we fit s and s_z together, (x^2 + y^2) / s^2 + z^2 / s_z^2 = 1
-being linear in (1 / s^2, 1 / s_z^2), and keep s_z / s within the range real caps span: with perfect
-encodings on val50 that cuts the scale error from 4.9 % to 1.1 %, because caps are not all of one
-shape (per-axis factors of 0.8-1.2).
+being linear in (1 / s^2, 1 / s_z^2), and keep s_z / s within the range real caps span, because caps
+are not all of one shape.
 
 By default (``axis="surface"``) the encoding's axis is then refined by the cap's own surface: an
 ellipsoid fitted to the cluster's points, started at the encoding's pose. The encoding values are
 noisy on a cap a few voxels across, while the dome's shape pins its axis down; the encoding stays in
-the fit, weakly, to hold the axis where the visible dome alone cannot (the model trained on 5.1 mm
-beds, val50 at 5.1 mm spacing: mean angle 5.91 degrees from the encoding alone, 3.55 refined; see
-``refine_axes``), and more strongly on a cloud whose surfaces are noisier than any the synthetic beds
+the fit, weakly, to hold the axis where the visible dome alone cannot (``refine_axes``), and more strongly on a cloud whose surfaces are noisier than any the synthetic beds
 show (``encoding_weight``), as a real scan's are.
 """
 

@@ -103,10 +103,9 @@ def _sorted_keys(x: SparseTensor) -> tuple[torch.Tensor, torch.Tensor]:
 DENSE_TABLE_CELLS = 1 << 23
 """Largest bounding box (cells, margin included) looked up in a dense table: 64 MB of int64 rows. A 0.5 m
 bed at 4.3 mm voxels (zoom 1.05) and 0.1 m of relief spans about 0.4 M cells, at 3.75 mm (zoom 1.2, the
-shipped model's) about 0.6 M; a fused cloud with a stray point metres away falls back to sorted keys.
-On 20 val50 beds (19.4 k voxels at the median, 2 threads, medians, one run) the kernel maps of a
-forward pass took 32.8 ms against 53.4 ms with sorted keys, and the forward pass 356.7 against 372.9
-ms."""
+shipped model's) about 0.6 M; a fused cloud with a stray point metres away falls back to sorted keys,
+which build the kernel maps more slowly (docs/DESIGN.md section 9; ``tests/test_sparse.py`` holds both
+to the same maps)."""
 TABLE_MARGIN = 4
 """Cells of room around the box: a stride-2 map asks from doubled parents up to one cell outside the
 fine voxels, plus its offsets. Queries that reach outside the padded box use the sorted keys."""
@@ -205,11 +204,9 @@ class _SparseConvFunction(torch.autograd.Function):
 
     Saves only ``features`` and ``weight``; backward gathers again instead of keeping the per-offset
     gathered copies, which would cost K times the input's memory. Rows are gathered with
-    ``index_select``: the network's forward pass on val50 beds took 192 ms instead of 242 ms with
-    indexing (``features[i]``) on 2 CPU cores. Per offset stays: on a 12.5 k-voxel training bed (8.1
-    occupied neighbours of 27), at 32 channels, a dense neighbour table and one matmul (im2col) took 68
-    against 19 ms for forward and backward, a CSR sparse matmul 69 against 9 ms forward, and a single
-    ``index_add_`` over all offsets 9.6 against 8.9 ms.
+    ``index_select``, faster than indexing on CPU; one gather-multiply-scatter per offset beats an
+    im2col table, a CSR matmul and a single scatter over all offsets on beds' sparse voxels (about 8 of
+    27 neighbours occupied; docs/DESIGN.md section 9).
     """
 
     @staticmethod

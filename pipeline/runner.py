@@ -36,7 +36,7 @@ class PerceptionStage:
     readings: int = 1
     """How many times the network reads each fused cloud, turned a further 360/N degrees about the
     vertical each time, its readings averaged: steadier caps for N network passes (one, so that a unit's
-    caps come as its frames do; ``detect`` reads four times, and the model card gives both)."""
+    caps come as its frames do; ``detect`` reads four times)."""
 
 
 @dataclass(frozen=True)
