@@ -65,10 +65,12 @@ def record_session(path: Path, turns: int) -> None:
 
 def replay(session: Path, model, realtime: bool, out: Path, readings: int):
     from pipeline.replay import ReplayOptions, run_replay
+    from pipeline.runner import PerceptionStage
 
     out.mkdir()
     started = time.perf_counter()
-    options = ReplayOptions(speed="realtime" if realtime else "max", readings=readings)
+    options = ReplayOptions(speed="realtime" if realtime else "max", perception=PerceptionStage(readings=readings),
+                            readings_as_recorded=False)
     result = run_replay(session, model, out, None, options, quiet=True)
     return result.summary, time.perf_counter() - started
 

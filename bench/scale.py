@@ -69,7 +69,7 @@ def train_run(folder: Path, iterations: int, address: str | None) -> tuple[float
 
     config = TrainConfig(iterations=iterations, checkpoint_every=iterations, validation_scenes=0)
     started = time.perf_counter()
-    weights = train(config, folder, progress=False, rerun=False, ray_address=address)
+    weights = train(config, folder, progress=False, ray_address=address)
     return time.perf_counter() - started, load_weights(weights)[0].state_dict()
 
 

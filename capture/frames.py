@@ -68,20 +68,3 @@ def backproject(depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> tuple[np.n
     v, u = np.divmod(index, intrinsics.width)
     points = np.stack([(u - intrinsics.cx) * z / intrinsics.fx, (v - intrinsics.cy) * z / intrinsics.fy, z], 1)
     return points.astype(np.float32), index
-
-
-def log_rerun(rec, frame: DepthFrame, entity: str | None = None, pinhole: bool = True) -> None:
-    """A frame in Rerun under ``world/camera/<id>``: its pose, depth image and colour, and with
-    ``pinhole`` its intrinsics, logged as static (a camera's intrinsics do not change in a run)."""
-    import rerun as rr
-
-    entity = entity or f"world/camera/{frame.sensor_id}"
-    if frame.T_world_camera is not None:
-        rec.log(entity, rr.Transform3D(translation=frame.T_world_camera[:3, 3], mat3x3=frame.T_world_camera[:3, :3]))
-    if pinhole:
-        rec.log(entity, rr.Pinhole(image_from_camera=frame.intrinsics.matrix,
-                                   resolution=[frame.intrinsics.width, frame.intrinsics.height],
-                                   camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.05), static=True)
-    rec.log(f"{entity}/depth", rr.DepthImage(frame.depth, meter=1.0 / frame.depth_scale, colormap="turbo"))
-    if frame.color is not None:
-        rec.log(f"{entity}/color", rr.Image(frame.color))

@@ -390,14 +390,6 @@ def height_colors(height: np.ndarray, top: float = 0.06) -> np.ndarray:
     return np.round(stops[low] * (1 - weight) + stops[low + 1] * weight).astype(np.uint8)
 
 
-def log_rerun(rec, fused: FusedCloud, entity: str = "world/fusion/cloud", radius: float = 0.0008) -> None:
-    """The fused cloud in world coordinates (beside ``world/camera/<id>``), in its colours, or by
-    height above the bed when it has none."""
-    import rerun as rr
-
-    rec.log(entity, rr.Points3D(fused.world_points, colors=fused.display_colors, radii=radius))
-
-
 @dataclass(frozen=True)
 class FusionStage:
     """How frames become fused units: by rig (a turntable: one cloud per turn; several fixed cameras:

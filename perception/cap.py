@@ -18,6 +18,9 @@ CAP_RADIUS_AT_UNIT_SCALE = 0.020
 """Cap radius in metres of the template at scale s = 1 (a 40 mm cap)."""
 CAP_HEIGHT_RATIO = 2.0 / 3.0
 """s_z / s of the cap ellipsoid."""
+CAP_COLOR = (255, 40, 200)
+"""Detected caps in every viewer (Rerun, Foxglove): magenta stands out against soil, white caps and the
+height colouring of the cloud."""
 
 
 def rotation_x(angle: np.ndarray | float) -> np.ndarray:

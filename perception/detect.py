@@ -324,23 +324,3 @@ def transform_result(result: SceneResult, T_frame_bed: np.ndarray, frame: str) -
                              transform_points(T_frame_bed, result.voxels.centers), result.voxels.orientation,
                              result.voxels.point_to_voxel)
     return SceneResult(result.caps.moved(T_frame_bed), result.point_labels, result.point_existence, voxels, frame, result.timings_ms)
-
-
-def log_rerun(rec, result: SceneResult, points: np.ndarray, entity: str = "world/perception",
-              color=(230, 60, 40), plan: dict | None = None) -> None:
-    """Existence on the points, the collapsed centres, the caps as ellipsoids and boxes in ``color``, and
-    the pick ``plan`` (the document's) as approach arrows."""
-    import rerun as rr
-
-    from perception.rerun_log import log_caps, log_plan
-
-    heat = np.clip(result.point_existence, 0, 1)[:, None]
-    colors = (255 * (heat * np.array([0.95, 0.25, 0.15]) + (1 - heat) * np.array([0.45, 0.4, 0.35]))).astype(np.uint8)
-    rec.log(f"{entity}/existence", rr.Points3D(points, colors=colors, radii=0.0012))
-    cap_voxels = result.voxels.existence > 0.5
-    rec.log(f"{entity}/centers", rr.Points3D(result.voxels.centers[cap_voxels], radii=0.0008, colors=(40, 120, 240)))
-    caps = result.caps
-    log_caps(rec, f"{entity}/mushrooms", caps.centers, caps.rotations, caps.scales,
-             labels=[f"#{k} {2000 * radius:.0f} mm" for k, radius in enumerate(caps.radii)], color=color)
-    if plan is not None:
-        log_plan(rec, f"{entity}/plan", plan)

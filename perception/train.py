@@ -16,9 +16,9 @@ import queue as queues
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Callable, Protocol
 
 import numpy as np
-import rerun as rr
 import torch
 import torch.nn.functional as F
 from torch.optim.swa_utils import AveragedModel
@@ -398,23 +398,31 @@ LOSS_TERMS = ("total", "existence", "residual", "orientation")
 VALIDATION_METRICS = ("ap25", "ap50", "angle_deg", "scale_err")
 HISTORY_COLUMNS = ("iteration", "lr", *LOSS_TERMS, "seconds", *(f"val_{name}" for name in VALIDATION_METRICS))
 """history.csv: one row per iteration; the validation columns are empty between validations."""
-ABANDONED_STREAMS: list = []
-"""Rerun streams whose file writer failed: kept referenced, since Rerun waits for ever on the dead
-writer when such a stream is dropped; the command line ends the process without dropping them."""
+
+
+class MetricsLog(Protocol):
+    """Where a training session's losses and validation metrics go besides history.csv (the command's:
+    ``pipeline.viewer.TrainingLog``, a Rerun recording beside the checkpoint)."""
+
+    def losses(self, iteration: int, losses: dict[str, float]) -> None: ...
+    def validation(self, iteration: int, metrics: dict[str, float]) -> None: ...
+    def close(self) -> None: ...
 
 
 def train(config: TrainConfig, run_dir: Path, resume: bool = False, device: str | None = None,
-          progress: bool = True, rerun: bool = True, stop_at: int | None = None,
-          max_minutes: float | None = None, ray_address: str | None = None) -> Path | None:
+          progress: bool = True, metrics_log: Callable[[Path], MetricsLog] | None = None,
+          stop_at: int | None = None, max_minutes: float | None = None,
+          ray_address: str | None = None) -> Path | None:
     """Train (or continue training) into ``run_dir``; returns the final weights, or None when the run
     stopped early (at iteration ``stop_at`` or after ``max_minutes``) with a checkpoint to resume. With
     ``ray_address`` ("local", or a cluster's address) the scenes are made as Ray tasks: the same scenes,
-    so the same run."""
+    so the same run. ``metrics_log`` opens a session's log at the path it is given (a .rrd beside the
+    checkpoint, named by the iteration the session starts from)."""
     if resume and (run_dir / "checkpoint.pt").is_file():
         config = resumed_config(_load_checkpoint(run_dir / "checkpoint.pt", "cpu")["train_config"], config)
     run = TrainingRun(config, run_dir, _resolve_device(device), resume, ray_address)
     end = config.iterations if stop_at is None else min(stop_at, config.iterations)
-    reached = run.iterate(end, progress=progress, rerun=rerun, max_minutes=max_minutes)
+    reached = run.iterate(end, progress=progress, metrics_log=metrics_log, max_minutes=max_minutes)
     return run.export() if reached == config.iterations else None
 
 
@@ -473,12 +481,13 @@ class TrainingRun:
         self.init = state.get("init")
         _trim_history(self.run_dir / "history.csv", self.start)
 
-    def iterate(self, end: int, progress: bool, rerun: bool, max_minutes: float | None) -> int:
+    def iterate(self, end: int, progress: bool, metrics_log: Callable[[Path], MetricsLog] | None,
+                max_minutes: float | None) -> int:
         """Train up to iteration ``end``, or until ``max_minutes`` have passed, with a row of history.csv
         per iteration, validations and checkpoints on the way and a checkpoint where it stops; returns
         the iteration reached."""
         validation = _validation_scenes(self.config)
-        rec = self._rerun_stream() if rerun else None
+        log = None if metrics_log is None else metrics_log(self.run_dir / f"train_from_{self.start:06d}.rrd")
         scenes = self._start_scene_generator()
         history = open(self.run_dir / "history.csv", "a", newline="")
         writer = csv.writer(history)
@@ -497,10 +506,11 @@ class TrainingRun:
                 losses = self._step(scenes.next(iteration), iteration)
                 row = [iteration + 1, self.scheduler.get_last_lr()[0], *(losses[name] for name in LOSS_TERMS),
                        round(self._elapsed(), 1)]
-                _log_losses(rec, iteration + 1, losses)
+                if log is not None:
+                    log.losses(iteration + 1, losses)
                 metrics = {}
                 if validation is not None and (iteration + 1) % self.config.validate_every == 0:
-                    metrics = self._validate(iteration + 1, validation, rec)
+                    metrics = self._validate(iteration + 1, validation, log)
                 writer.writerow(row + [metrics.get(name, "") for name in VALIDATION_METRICS])
                 _show_losses(bar, losses)
                 if (iteration + 1) % self.config.checkpoint_every == 0:
@@ -511,18 +521,9 @@ class TrainingRun:
             bar.close()
             history.close()
             scenes.close()
-            if rec is not None:
-                try:
-                    rec.flush(timeout_sec=10)
-                except RuntimeError:  # its file writer died (a full disk): dropping the stream would wait on it
-                    ABANDONED_STREAMS.append(rec)
+            if log is not None:
+                log.close()
         return end
-
-    def _rerun_stream(self) -> rr.RecordingStream:
-        """The losses and validation metrics of this session, saved beside the checkpoint."""
-        rec = rr.RecordingStream("mushroom-pose-train")
-        rec.save(self.run_dir / f"train_from_{self.start:06d}.rrd")
-        return rec
 
     def _start_scene_generator(self) -> ProcessScenes | RayScenes:
         """The samples of the iterations to come: a worker process, or Ray tasks with ``ray_address``."""
@@ -550,14 +551,13 @@ class TrainingRun:
             self.averaged.update_parameters(self.model)
         return {k: v.item() for k, v in terms.items()}
 
-    def _validate(self, iteration: int, scenes, rec: rr.RecordingStream | None) -> dict[str, float]:
-        """The validation metrics of the model model.pt would hold now, printed and logged to Rerun."""
+    def _validate(self, iteration: int, scenes, log: MetricsLog | None) -> dict[str, float]:
+        """The validation metrics of the model model.pt would hold now, printed and logged."""
         metrics = validate(self.shipped_model(), scenes)
         tqdm.write(f"iteration {iteration}: val AP@25 {metrics['ap25']:.3f}  AP@50 {metrics['ap50']:.3f}  "
                    f"angle {metrics['angle_deg']:.2f} deg  scale err {metrics['scale_err']:.3f}")
-        if rec is not None:
-            for name in VALIDATION_METRICS:
-                rec.log(f"stats/val/{name}", rr.Scalars(metrics[name]))
+        if log is not None:
+            log.validation(iteration, {name: metrics[name] for name in VALIDATION_METRICS})
         return metrics
 
     def shipped_model(self) -> MushroomNet:
@@ -631,13 +631,6 @@ def _validation_scenes(config: TrainConfig):
     from perception.synthetic.dataset import load_preset
 
     return load_preset("val50", progress=False, limit=config.validation_scenes, spacing=config.scene.spacing)
-
-
-def _log_losses(rec: rr.RecordingStream | None, iteration: int, losses: dict[str, float]) -> None:
-    if rec is not None:
-        rec.set_time("iteration", sequence=iteration)
-        for name, value in losses.items():
-            rec.log(f"stats/loss/{name}", rr.Scalars(value))
 
 
 def _show_losses(bar: tqdm, losses: dict[str, float]) -> None:

@@ -11,7 +11,7 @@ import os
 import shutil
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 OUTPUT_NAMES = ("session.mcap", "detections.json", "demo.rrd")
@@ -30,13 +30,14 @@ class DemoResult:
     seconds: dict[str, float]
 
 
-def run_demo(out_dir: Path, model, seed: int = 0, views: int = 18, rrd: bool = True, spawn: bool = False,
+def run_demo(out_dir: Path, model, seed: int = 0, views: int = 18, rrd: bool = True, viewer=None,
              progress: bool = True) -> DemoResult:
     """Run the chain into ``out_dir``: session.mcap, detections.json and (``rrd``) demo.rrd appear
-    together when the run succeeds; an interrupted or failed run leaves the folder as it was."""
+    together when the run succeeds; an interrupted or failed run leaves the folder as it was. A
+    ``pipeline.viewer.ViewerTarget`` also shows the run in a viewer (its ``rrd`` is demo.rrd's)."""
     staging = Path(tempfile.mkdtemp(prefix=".demo-", dir=out_dir))
     try:
-        result = _run(staging, model, seed, views, rrd, spawn, progress)
+        result = _run(staging, model, seed, views, rrd, viewer, progress)
         for name in OUTPUT_NAMES:
             if (staging / name).exists():
                 os.replace(staging / name, out_dir / name)
@@ -46,23 +47,24 @@ def run_demo(out_dir: Path, model, seed: int = 0, views: int = 18, rrd: bool = T
         shutil.rmtree(staging, ignore_errors=True)
 
 
-def _run(folder: Path, model, seed: int, views: int, rrd: bool, spawn: bool, progress: bool) -> tuple:
+def _run(folder: Path, model, seed: int, views: int, rrd: bool, viewer, progress: bool) -> tuple:
     from fusion.cloud import FusionConfig
     from fusion.turntable import Rig
     from perception.cap import Caps
     from perception.evaluate import evaluate
     from fusion.cloud import FusionStage
     from pipeline.runner import RunConfig
-    from pipeline.session import Outputs, run_chain
+    from pipeline.chain import Outputs, run_chain
     from pipeline.sources import VirtualBed, virtual_bed_source
+    from pipeline.viewer import ViewerTarget
 
     start = time.perf_counter()
     source, bed = virtual_bed_source(VirtualBed(seed=seed, views=views, start_ns=time.time_ns()))
     scene_s = time.perf_counter() - start
     config = RunConfig(fusion=FusionStage(FusionConfig(angles="encoder"), Rig(source.turntable)))
-    outputs = Outputs(record=folder / "session.mcap", rrd=folder / "demo.rrd" if rrd else None,
-                      detections=folder / "detections.json", spawn=spawn, name=f"demo bed {seed}",
-                      quiet=not progress)
+    viewer = replace(viewer or ViewerTarget(), rrd=folder / "demo.rrd" if rrd else None)
+    outputs = Outputs(record=folder / "session.mcap", viewer=viewer, name=f"demo bed {seed}",
+                      detections=folder / "detections.json", quiet=not progress)
     start = time.perf_counter()
     summary = run_chain(source, model, config, outputs)
     if not summary.detections:

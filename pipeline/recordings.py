@@ -98,7 +98,7 @@ def expected_path(recording_file: Path) -> Path:
 def make_recording(recording: Recording, out_dir: Path, model) -> tuple[Path, list[dict]]:
     """Record ``recording`` into ``out_dir`` with its expected detections; returns the file and them."""
     from pipeline.runner import RunConfig
-    from pipeline.session import Outputs, run_chain
+    from pipeline.chain import Outputs, run_chain
 
     target = out_dir / recording.file
     source, cameras = recording_source(recording)

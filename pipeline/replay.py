@@ -4,13 +4,13 @@ against the detections the session recorded."""
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
-from perception.instances import ClusteringMethod
+from fusion.cloud import FusionStage
 from pipeline.check import CheckReport, Tolerances, compare
-from pipeline.runner import RunSummary
+from pipeline.runner import PerceptionStage, RunSummary
 
 
 class ReplayError(ValueError):
@@ -19,22 +19,18 @@ class ReplayError(ValueError):
 
 @dataclass(frozen=True)
 class ReplayOptions:
-    """How a session is replayed; every field is a flag of ``mushroom-pose replay``."""
+    """How a session is replayed: its own flags of ``mushroom-pose replay``, and the fusion and
+    perception stages as ``live`` runs them."""
 
     from_stage: Literal["capture", "fusion"] = "capture"
     """capture: fuse the recorded frames again; fusion: detect on the recorded fused clouds."""
     speed: Literal["max", "realtime"] = "max"
     """max: as fast as the chain runs; realtime: at the recorded frame rate, as a camera delivers them."""
-    rig: str | None = None
-    """Rig file from mushroom-pose calibrate (a turntable, or several fixed cameras)."""
-    window: int | None = None
-    """One camera without a rig: fuse the last N frames, registered by ICP (default: each frame alone)."""
-    clustering: ClusteringMethod = "meanshift"
-    """How the network's cap-centre votes are grouped into caps."""
-    readings: int | None = None
-    """How many times the network reads each fused cloud, turned a further 360/N degrees about the
-    vertical each time, its readings averaged (default: as often as the session's recorded detections
-    say they were read, once when they do not say)."""
+    fusion: FusionStage = field(default_factory=FusionStage)
+    perception: PerceptionStage = field(default_factory=PerceptionStage)
+    readings_as_recorded: bool = True
+    """Read each unit as often as the session's recorded detections say (once when they do not say)
+    rather than ``perception.readings`` times, so that a replay reads as the run did."""
 
     @property
     def realtime(self) -> bool:
@@ -110,29 +106,23 @@ def expected_documents(session: Path) -> list[dict]:
                       "beside it: nothing to check against")
 
 
-def run_replay(session: Path, model, out_dir: Path, rrd: Path | None, options: ReplayOptions = ReplayOptions(),
+def run_replay(session: Path, model, out_dir: Path, viewer=None, options: ReplayOptions = ReplayOptions(),
                check: Tolerances | None = None, quiet: bool = False, stop_requested=lambda: None,
                on_start=None, expected: list[dict] | None = None) -> ReplayResult:
     """Replay ``session`` (an MCAP session, or a RealSense device file through the driver) into
     ``out_dir`` (replay.mcap: the session's frames with the new fusion and perception topics;
-    detections.json: the last unit's caps) and ``rrd``; with ``check``, compare every unit's caps with
+    detections.json: the last unit's caps) and the ``pipeline.viewer.ViewerTarget`` ``viewer`` (None:
+    no viewer); with ``check``, compare every unit's caps with
     ``expected``, by default those the session recorded."""
     from capture.mcap.reader import McapSource, TruncatedRecordingWarning, read_fused_units
     from capture.source import Paced, SourceError
     from fusion.cloud import FusedCloud
-    from fusion.turntable import Rig
-    from fusion.cloud import FusionStage
-    from pipeline.runner import PerceptionStage, RunConfig
-    from pipeline.session import Outputs, run_chain
+    from pipeline.chain import Outputs, run_chain
+    from pipeline.runner import RunConfig
+    from pipeline.viewer import ViewerTarget
 
     if check is not None and expected is None:
         expected = expected_documents(session)
-    rig = None
-    if options.rig is not None:
-        try:
-            rig = Rig.load(options.rig)
-        except ValueError as error:
-            raise ReplayError(str(error)) from None
     if session.suffix == ".db3":
         if options.from_stage == "fusion":
             raise ReplayError(f"{session} is a RealSense device file: it holds frames only, replay it from capture")
@@ -159,14 +149,15 @@ def run_replay(session: Path, model, out_dir: Path, rrd: Path | None, options: R
             raise ReplayError(f"{session} holds no fused clouds (/fusion/cloud with /fusion/unit): replay it from "
                               "--from-stage capture")
         recorded = tuple(FusedCloud.from_world(u.points, u.T_world_bed, u.frame_ids) for u in units)
-    readings = options.readings if options.readings is not None else recorded_readings(session, expected)
+    perception = options.perception
+    if options.readings_as_recorded:
+        perception = replace(perception, readings=recorded_readings(session, expected))
     # a checked replay stops after as many units as it is checked against, as the run it replays stopped:
     # a live run records the frames that came while its last unit was detected, and fuses none of them
-    config = RunConfig(fusion=FusionStage(rig=rig, window=options.window, recorded=recorded),
-                       perception=PerceptionStage(options.clustering, readings), live=options.realtime,
-                       max_units=len(expected) if check is not None else None)
-    outputs = Outputs(record=out_dir / "replay.mcap", rrd=rrd, detections=out_dir / "detections.json",
-                      name=f"replay of {session.name}", quiet=quiet)
+    config = RunConfig(fusion=replace(options.fusion, recorded=recorded), perception=perception,
+                       live=options.realtime, max_units=len(expected) if check is not None else None)
+    outputs = Outputs(record=out_dir / "replay.mcap", viewer=viewer or ViewerTarget(), name=f"replay of {session.name}",
+                      detections=out_dir / "detections.json", quiet=quiet)
     frames = Paced(source) if options.realtime else source
     try:
         summary = run_chain(frames, model, config, outputs, sensors=max(1, len(sensor_ids)),

@@ -11,15 +11,13 @@ import numpy as np
 
 from capture.frames import DepthFrame
 from common.files import write_atomically
+from perception.cap import CAP_COLOR
 from pipeline.runner import Detection, FusedUnit, Sink
 
-CAP_COLOR = (255, 40, 200)
-"""Caps stand out in magenta against soil, white caps and the height colouring of the cloud."""
-
-
 class RerunSink(Sink):
-    """Frames under world/camera/<id>, the fused cloud, the caps in 3D and over each camera's image,
-    and stats/* over the frame and capture timelines."""
+    """Frames under each camera's entity, the fused cloud, the caps in 3D and over each camera's image,
+    and the run's statistics over the frame and capture timelines (``pipeline.viewer``); the blueprint
+    goes with the first fused unit, when the bed frame is known."""
 
     def __init__(self, rec):
         self.rec = rec
@@ -28,48 +26,42 @@ class RerunSink(Sink):
         self._framed = False
 
     def _time(self, frame: int, capture_ns: int) -> None:
-        from pipeline.rerun_sink import set_frame
+        from pipeline.viewer import set_frame
 
         set_frame(self.rec, frame, capture_ns)
 
     def captured(self, index: int, frame: DepthFrame) -> None:
-        from capture.frames import log_rerun
+        from pipeline.viewer import log_frame
 
         self._time(index, frame.timestamp_ns)
-        log_rerun(self.rec, frame, pinhole=frame.sensor_id not in self._static_cameras)
+        log_frame(self.rec, frame, pinhole=frame.sensor_id not in self._static_cameras)
         self._static_cameras.add(frame.sensor_id)
         self._views[frame.sensor_id] = frame
 
     def fused(self, unit: FusedUnit) -> None:
-        from fusion.cloud import log_rerun as log_fused
-        from pipeline.rerun_sink import default_blueprint
+        from pipeline.viewer import log_fused_cloud, send_blueprint
 
         if not self._framed:
             self._framed = True
-            extent = float(np.ptp(unit.cloud.points[:, :2], axis=0).max()) if len(unit.cloud) else 0.5
-            self.rec.send_blueprint(default_blueprint(sorted(self._views), unit.cloud.T_world_bed, extent))
+            send_blueprint(self.rec, sorted(self._views), unit.cloud.T_world_bed, unit.cloud.points)
         self._time(unit.last_frame_index, unit.last_frame_ns)
-        log_fused(self.rec, unit.cloud)
+        log_fused_cloud(self.rec, unit.cloud)
 
     def detected(self, detection: Detection) -> None:
-        from perception.detect import log_rerun
-        from perception.rerun_log import log_caps_in_image
+        from pipeline.viewer import log_caps_in_image, log_detection
 
         unit = detection.unit
         self._time(unit.last_frame_index, unit.last_frame_ns)
-        log_rerun(self.rec, detection.result, unit.cloud.world_points, color=CAP_COLOR,
-                  plan=detection.document.get("plan"))
-        caps = detection.result.caps
-        for sensor, frame in list(self._views.items()):
+        log_detection(self.rec, detection.result, unit.cloud.world_points, plan=detection.document.get("plan"))
+        for frame in list(self._views.values()):
             if frame.T_world_camera is not None:
-                log_caps_in_image(self.rec, f"world/camera/{sensor}/caps", caps.centers, caps.rotations, caps.scales,
-                                  frame.T_world_camera, frame.intrinsics, CAP_COLOR)
+                log_caps_in_image(self.rec, frame, detection.result.caps)
 
     def stats(self, name: str, value: float, frame: int, capture_ns: int) -> None:
-        import rerun as rr
+        from pipeline.viewer import log_stat
 
         self._time(frame, capture_ns)
-        self.rec.log(f"stats/{name}", rr.Scalars(float(value)))
+        log_stat(self.rec, name, value)
 
 
 class McapSink(Sink):

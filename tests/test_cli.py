@@ -199,7 +199,7 @@ def test_the_parser_restates_its_choices_as_the_libraries_define_them():
 
     assert FILE_READINGS == detect.FILE_READINGS
     assert detect.LIVE_READINGS == PerceptionStage.readings  # the runner reads as the library does
-    assert ReplayOptions.readings is None  # a replay reads as often as the session's detections say
+    assert ReplayOptions.readings_as_recorded  # a replay reads as often as the session's detections say
     assert MAX_READINGS == detect.MAX_READINGS
 
 

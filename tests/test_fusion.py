@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 from capture.frames import CameraIntrinsics, DepthFrame, backproject
 from capture.virtual import VirtualCameraConfig, VirtualSource, circle_turntable
 from common.geometry import Turntable, look_at, transform_points
-from fusion.cloud import FusedCloud, FusionConfig, Fuser, fuse, log_rerun
+from fusion.cloud import FusedCloud, FusionConfig, Fuser, fuse
 from fusion.integrate import IntegrationConfig, smooth_depth
 from fusion.registration import RegistrationConfig, pose_change, prepare_view, refine_poses
 from fusion.turntable import Rig, estimate_rig, estimate_turntable
@@ -199,18 +199,15 @@ def test_streaming_every_n_frames_and_fixed_step(session):
     assert surface_rms(session, outputs[-1].world_points) < 0.003
 
 
-def test_log_rerun_writes_the_cloud(session, tmp_path):
-    import rerun as rr
-
-    from helpers import rrd_entity_rows
+def test_the_viewer_shows_the_fused_cloud(session, tmp_path):
+    from helpers import rrd_values
+    from pipeline.viewer import ViewerTarget, log_fused_cloud, viewer_stream
 
     fused = fuse(session.frames[:1])
-    rec = rr.RecordingStream("test-fusion")
-    rec.save(tmp_path / "fusion.rrd")
-    log_rerun(rec, fused)
-    rec.flush()
-    rec.disconnect()
-    assert rrd_entity_rows(tmp_path / "fusion.rrd")["/world/fusion/cloud"] >= 1
+    with viewer_stream(ViewerTarget(tmp_path / "fusion.rrd")) as rec:
+        log_fused_cloud(rec, fused)
+    [(_, positions)] = rrd_values(tmp_path / "fusion.rrd", "/world/fusion/cloud", "Points3D:positions")
+    np.testing.assert_allclose(np.asarray(positions), fused.world_points, atol=1e-6)
 
 
 def test_bad_input_gives_clear_errors(session):

@@ -90,8 +90,8 @@ def test_a_run_trained_on_beds_made_by_ray_tasks_is_the_local_run(tmp_path, loca
                                                       first_kernel=3, head_hidden=(8, 8)))
     config = TrainConfig(iterations=3, network="tiny", checkpoint_every=3, validation_scenes=0,
                          scene=SceneConfig(mushrooms=(3, 5)), queue_size=2)
-    local = train(config, tmp_path / "local", progress=False, rerun=False)
-    remote = train(config, tmp_path / "ray", progress=False, rerun=False, ray_address="local")
+    local = train(config, tmp_path / "local", progress=False)
+    remote = train(config, tmp_path / "ray", progress=False, ray_address="local")
     for a, b in zip(load_weights(local)[0].state_dict().values(), load_weights(remote)[0].state_dict().values()):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
     assert (tmp_path / "local" / "history.csv").read_text().count("\n") == 4

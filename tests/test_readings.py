@@ -81,7 +81,7 @@ def _frames_and_documents(path, documents):
 @pytest.fixture()
 def chain_readings(monkeypatch):
     """The readings each run of the chain was asked for; the chain itself stops at once."""
-    import pipeline.session
+    import pipeline.chain
 
     class ChainReached(Exception):
         pass
@@ -92,7 +92,7 @@ def chain_readings(monkeypatch):
         asked.append(config.perception.readings)
         raise ChainReached
 
-    monkeypatch.setattr(pipeline.session, "run_chain", chain)
+    monkeypatch.setattr(pipeline.chain, "run_chain", chain)
     return asked, ChainReached
 
 
@@ -101,12 +101,13 @@ def test_replay_reads_as_often_as_the_session_was_read_unless_told(tmp_path, cha
     from perception.weights import load_weights
     from pipeline.recordings import RECORDINGS_DIR
     from pipeline.replay import ReplayError, ReplayOptions, run_replay
+    from pipeline.runner import PerceptionStage
 
     asked, reached = chain_readings
     model = load_weights(DEFAULT_WEIGHTS)[0]
     three = _frames_and_documents(tmp_path / "three.mcap", [{"readings": 3, "frame": "world", "mushrooms": []}])
     unsaid = RECORDINGS_DIR / "turntable-12.mcap"  # its detections do not say: read once
-    for session, options in ((three, ReplayOptions()), (three, ReplayOptions(readings=2)), (unsaid, ReplayOptions())):
+    for session, options in ((three, ReplayOptions()), (three, ReplayOptions(perception=PerceptionStage(readings=2), readings_as_recorded=False)), (unsaid, ReplayOptions())):
         with pytest.raises(reached):
             run_replay(session, model, tmp_path / "out", None, options, quiet=True)
     assert asked == [3, 2, 1]

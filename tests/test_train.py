@@ -141,19 +141,18 @@ def test_fine_tuning_starts_from_the_given_weights_and_adds_their_cost(tmp_path,
     import shutil
 
     base_config = TrainConfig(iterations=2, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
-    base = train(base_config, tmp_path / "base", progress=False, rerun=False)
+    base = train(base_config, tmp_path / "base", progress=False)
     base_model, base_meta = load_weights(base)
     base_hash = hashlib.sha256(base.read_bytes()).hexdigest()
     init = tmp_path / "init.pt"
     shutil.copy(base, init)
     tuned_config = TrainConfig(**{**base_config.__dict__, "iterations": 2, "lr": 1e-12, "seed": 1,
                                   "init_weights": str(init)})
-    assert train(tuned_config, tmp_path / "tuned", progress=False, rerun=False, stop_at=1) is None
+    assert train(tuned_config, tmp_path / "tuned", progress=False, stop_at=1) is None
     shutil.copy(tmp_path / "tuned" / "checkpoint.pt", init)  # the start file changes before the resume
-    tuned_model, meta = load_weights(train(tuned_config, tmp_path / "tuned", resume=True, progress=False,
-                                           rerun=False))
+    tuned_model, meta = load_weights(train(tuned_config, tmp_path / "tuned", resume=True, progress=False))
     fresh_model, _ = load_weights(train(TrainConfig(**{**tuned_config.__dict__, "init_weights": None}),
-                                        tmp_path / "fresh", progress=False, rerun=False))
+                                        tmp_path / "fresh", progress=False))
     weight = next(k for k, v in base_model.state_dict().items() if v.dim() == 3)  # the first sparse conv
     torch.testing.assert_close(tuned_model.state_dict()[weight], base_model.state_dict()[weight], rtol=0, atol=1e-6)
     assert not torch.allclose(fresh_model.state_dict()[weight], base_model.state_dict()[weight], atol=1e-3)
@@ -163,19 +162,19 @@ def test_fine_tuning_starts_from_the_given_weights_and_adds_their_cost(tmp_path,
     monkeypatch.setitem(NETWORK_PRESETS, "other", NetworkConfig(**{**TINY.__dict__, "channels": (8, 8, 8, 16)}))
     with pytest.raises(ValueError, match="different network"):
         train(TrainConfig(**{**tuned_config.__dict__, "network": "other", "init_weights": str(base)}),
-              tmp_path / "other", progress=False, rerun=False)
+              tmp_path / "other", progress=False)
 
 
 def test_resume_continues_exactly(tmp_path, tiny_network):
     config = TrainConfig(iterations=4, network=tiny_network, checkpoint_every=2, validation_scenes=0,
                          scene=SMALL_SCENES, queue_size=2)
-    straight = train(config, tmp_path / "straight", progress=False, rerun=False)
-    assert train(config, tmp_path / "resumed", progress=False, rerun=False, stop_at=2) is None
+    straight = train(config, tmp_path / "straight", progress=False)
+    assert train(config, tmp_path / "resumed", progress=False, stop_at=2) is None
     checkpoint = torch.load(tmp_path / "resumed" / "checkpoint.pt", weights_only=False)
     assert checkpoint["iteration"] == 2
     # the run keeps the zoom it started with, whatever the default is when it resumes
     torch.save({**checkpoint, "inference_zoom": 1.2}, tmp_path / "resumed" / "checkpoint.pt")
-    resumed = train(config, tmp_path / "resumed", resume=True, progress=False, rerun=False)
+    resumed = train(config, tmp_path / "resumed", resume=True, progress=False)
     assert load_weights(resumed)[0].inference_zoom == 1.2
     model_a, meta = load_weights(straight)
     model_b, _ = load_weights(resumed)
@@ -193,10 +192,10 @@ def test_resume_after_an_interrupt_keeps_one_history_row_per_iteration(tmp_path,
     rows of a marked learning rate)."""
     config = TrainConfig(iterations=4, network=tiny_network, checkpoint_every=2, validation_scenes=0,
                          scene=SMALL_SCENES, queue_size=2)
-    train(config, tmp_path, progress=False, rerun=False, stop_at=2)
+    train(config, tmp_path, progress=False, stop_at=2)
     with open(tmp_path / "history.csv", "a") as history:
         history.write("3,-1,0,0,0,0,0,,,,\n")  # written after checkpoint 2 by a run that then died
-    train(config, tmp_path, resume=True, progress=False, rerun=False)
+    train(config, tmp_path, resume=True, progress=False)
     rows = [line.split(",") for line in (tmp_path / "history.csv").read_text().splitlines()[1:]]
     assert [row[0] for row in rows] == ["1", "2", "3", "4"]
     assert all(row[1] != "-1" for row in rows)
@@ -204,34 +203,33 @@ def test_resume_after_an_interrupt_keeps_one_history_row_per_iteration(tmp_path,
 
 def test_resume_with_other_flags_is_refused(tmp_path, tiny_network):
     config = TrainConfig(iterations=2, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
-    train(config, tmp_path, progress=False, rerun=False, stop_at=1)
+    train(config, tmp_path, progress=False, stop_at=1)
     with pytest.raises(ValueError, match=r"different configuration \(lr: 0.001 there, 0.5 here\)"):
-        train(TrainConfig(**{**config.__dict__, "lr": 0.5}), tmp_path, resume=True, progress=False, rerun=False)
+        train(TrainConfig(**{**config.__dict__, "lr": 0.5}), tmp_path, resume=True, progress=False)
     with pytest.raises(ValueError, match=r"\(scene.spacing: [0-9.]+ there, 0.0051 here\)"):
-        train(replace(config, scene=replace(config.scene, spacing=0.0051)), tmp_path, resume=True, progress=False,
-              rerun=False)
+        train(replace(config, scene=replace(config.scene, spacing=0.0051)), tmp_path, resume=True, progress=False)
 
 
 def test_resume_needs_a_readable_checkpoint(tmp_path, tiny_network):
     config = TrainConfig(iterations=2, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
     with pytest.raises(ValueError, match="no checkpoint to resume"):
-        train(config, tmp_path / "typo", resume=True, progress=False, rerun=False)
+        train(config, tmp_path / "typo", resume=True, progress=False)
     assert not (tmp_path / "typo").exists()
-    train(config, tmp_path / "run", progress=False, rerun=False)
+    train(config, tmp_path / "run", progress=False)
     checkpoint = tmp_path / "run" / "checkpoint.pt"
     checkpoint.write_bytes(checkpoint.read_bytes()[:1000])
     with pytest.raises(ValueError, match="not a readable checkpoint"):
-        train(config, tmp_path / "run", resume=True, progress=False, rerun=False)
+        train(config, tmp_path / "run", resume=True, progress=False)
     (tmp_path / "run" / "model.pt").replace(checkpoint)
     with pytest.raises(ValueError, match="not a training checkpoint"):
-        train(config, tmp_path / "run", resume=True, progress=False, rerun=False)
+        train(config, tmp_path / "run", resume=True, progress=False)
 
 
 def test_a_diverging_run_stops_with_an_error_and_writes_no_model(tmp_path, tiny_network):
     config = TrainConfig(iterations=6, lr=1e30, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES,
                          queue_size=2)
     with pytest.raises(TrainingError, match="no longer finite"):
-        train(config, tmp_path, progress=False, rerun=False)
+        train(config, tmp_path, progress=False)
     assert not (tmp_path / "model.pt").exists()
 
 
@@ -244,7 +242,7 @@ def test_a_dead_scene_generator_stops_the_run(tmp_path, tiny_network, monkeypatc
     monkeypatch.setattr(training, "augmented_sample", broken)  # the forked generator inherits it
     config = TrainConfig(iterations=2, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
     with pytest.raises(TrainingError, match="scene generator stopped"):
-        train(config, tmp_path, progress=False, rerun=False)
+        train(config, tmp_path, progress=False)
 
 
 def test_a_stuck_scene_generator_stops_the_run(tmp_path, tiny_network, monkeypatch):
@@ -257,16 +255,16 @@ def test_a_stuck_scene_generator_stops_the_run(tmp_path, tiny_network, monkeypat
     monkeypatch.setattr(training, "SAMPLE_PATIENCE_S", 5.0)
     config = TrainConfig(iterations=2, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
     with pytest.raises(TrainingError, match="is stuck"):
-        train(config, tmp_path, progress=False, rerun=False)
+        train(config, tmp_path, progress=False)
 
 
 def test_a_device_torch_cannot_use_is_refused(tmp_path, tiny_network):
     config = TrainConfig(iterations=2, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
     with pytest.raises(ValueError, match="unknown device"):
-        train(config, tmp_path, device="gpu", progress=False, rerun=False)
+        train(config, tmp_path, device="gpu", progress=False)
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="no CUDA"):
-            train(config, tmp_path, device="cuda", progress=False, rerun=False)
+            train(config, tmp_path, device="cuda", progress=False)
 
 
 def test_network_runs_on_any_device_and_predicts_five_values():
@@ -335,13 +333,13 @@ def test_offset_features_place_each_centroid_inside_its_voxel():
 def test_training_with_normal_features_runs(tmp_path, monkeypatch):
     monkeypatch.setitem(NETWORK_PRESETS, "tiny-n", NetworkConfig(**{**TINY.__dict__, "normals": True}))
     config = TrainConfig(iterations=2, network="tiny-n", validation_scenes=0, scene=SMALL_SCENES)
-    model, _ = load_weights(train(config, tmp_path, progress=False, rerun=False))
+    model, _ = load_weights(train(config, tmp_path, progress=False))
     assert model.conv1.weight.shape[1] == 4
 
 
 def test_a_time_budget_stops_with_a_resumable_checkpoint(tmp_path, tiny_network):
     config = TrainConfig(iterations=50, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
-    assert train(config, tmp_path, progress=False, rerun=False, max_minutes=1e-6) is None
+    assert train(config, tmp_path, progress=False, max_minutes=1e-6) is None
     assert torch.load(tmp_path / "checkpoint.pt", weights_only=False)["iteration"] < 50
 
 
@@ -365,10 +363,10 @@ def test_the_zoom_asked_for_is_recorded_in_the_weights_and_read_at_by_validation
                                                                                  validation_zooms):
     config = TrainConfig(iterations=2, network=tiny_network, validate_every=1, validation_scenes=1,
                          scene=SMALL_SCENES, zoom=1.2)
-    assert load_weights(train(config, tmp_path / "zoomed", progress=False, rerun=False))[0].inference_zoom == 1.2
+    assert load_weights(train(config, tmp_path / "zoomed", progress=False))[0].inference_zoom == 1.2
     assert validation_zooms == [1.2, 1.2]
     plain = TrainConfig(**{**config.__dict__, "zoom": None, "validation_scenes": 0})
-    assert load_weights(train(plain, tmp_path / "plain", progress=False, rerun=False))[0].inference_zoom == \
+    assert load_weights(train(plain, tmp_path / "plain", progress=False))[0].inference_zoom == \
         INFERENCE_ZOOM
 
 
@@ -376,26 +374,26 @@ def test_a_resumed_averaging_run_validates_and_ships_at_the_zoom_its_checkpoint_
                                                                                        validation_zooms):
     config = TrainConfig(iterations=3, network=tiny_network, checkpoint_every=1, validate_every=1,
                          validation_scenes=1, scene=SMALL_SCENES, average_from=0.3)
-    train(config, tmp_path, progress=False, rerun=False, stop_at=2)
+    train(config, tmp_path, progress=False, stop_at=2)
     state = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
     del state["inference_zoom"]  # a checkpoint that records no zoom is read at UNRECORDED_ZOOM
     torch.save(state, tmp_path / "checkpoint.pt")
     validation_zooms.clear()
-    weights = train(config, tmp_path, resume=True, progress=False, rerun=False)
+    weights = train(config, tmp_path, resume=True, progress=False)
     assert validation_zooms == [UNRECORDED_ZOOM] and load_weights(weights)[0].inference_zoom == UNRECORDED_ZOOM
     assert UNRECORDED_ZOOM != INFERENCE_ZOOM
 
 
 def test_a_checkpoint_from_before_a_new_flag_resumes_with_its_default(tmp_path, tiny_network):
     config = TrainConfig(iterations=2, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
-    train(config, tmp_path, progress=False, rerun=False, stop_at=1)
+    train(config, tmp_path, progress=False, stop_at=1)
     state = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
     del state["train_config"]["orientation_on_caps"], state["train_config"]["init_weights"]
     torch.save(state, tmp_path / "checkpoint.pt")
-    assert train(config, tmp_path, resume=True, progress=False, rerun=False) is not None
+    assert train(config, tmp_path, resume=True, progress=False) is not None
     with pytest.raises(ValueError, match="different configuration"):
         train(TrainConfig(**{**config.__dict__, "orientation_on_caps": True}), tmp_path, resume=True,
-              progress=False, rerun=False)
+              progress=False)
 
 
 def test_weight_averaging_ships_the_mean_of_the_last_steps_and_resumes_exactly(tmp_path, tiny_network):
@@ -403,12 +401,12 @@ def test_weight_averaging_ships_the_mean_of_the_last_steps_and_resumes_exactly(t
                         scene=SMALL_SCENES, queue_size=2)
     steps = []
     for stop in (2, 3, 4):
-        train(plain, tmp_path / "plain", resume=stop > 2, progress=False, rerun=False, stop_at=stop)
+        train(plain, tmp_path / "plain", resume=stop > 2, progress=False, stop_at=stop)
         steps.append(torch.load(tmp_path / "plain" / "checkpoint.pt", weights_only=False)["model"])
     averaging = replace(plain, average_from=0.5)
-    straight, _ = load_weights(train(averaging, tmp_path / "straight", progress=False, rerun=False))
-    assert train(averaging, tmp_path / "resumed", progress=False, rerun=False, stop_at=3) is None
-    resumed, _ = load_weights(train(averaging, tmp_path / "resumed", resume=True, progress=False, rerun=False))
+    straight, _ = load_weights(train(averaging, tmp_path / "straight", progress=False))
+    assert train(averaging, tmp_path / "resumed", progress=False, stop_at=3) is None
+    resumed, _ = load_weights(train(averaging, tmp_path / "resumed", resume=True, progress=False))
     averaged_any = False
     for name, value in straight.state_dict().items():
         if not value.is_floating_point():
@@ -425,9 +423,9 @@ def test_averaging_runs_from_one_start_gives_their_mean_and_counts_the_start_onc
     from perception.weights import average_weights
 
     base_config = TrainConfig(iterations=2, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES)
-    base = train(base_config, tmp_path / "base", progress=False, rerun=False)
+    base = train(base_config, tmp_path / "base", progress=False)
     tuned = [train(TrainConfig(**{**base_config.__dict__, "seed": seed, "init_weights": str(base)}),
-                   tmp_path / f"tuned{seed}", progress=False, rerun=False) for seed in (1, 2)]
+                   tmp_path / f"tuned{seed}", progress=False) for seed in (1, 2)]
     metas = [load_weights(path)[1] for path in (base, *tuned)]
     states = [load_weights(path)[0].state_dict() for path in tuned]
     model, meta = average_weights(tuned)
@@ -445,11 +443,10 @@ def test_averaging_runs_from_one_start_gives_their_mean_and_counts_the_start_onc
     soup, soup_meta = load_weights(out)
     assert soup_meta["total_train_seconds"] == pytest.approx(meta["total_train_seconds"])
     fine_tuned_soup = train(TrainConfig(**{**base_config.__dict__, "seed": 3, "init_weights": str(out)}),
-                            tmp_path / "after", progress=False, rerun=False)
+                            tmp_path / "after", progress=False)
     assert load_weights(fine_tuned_soup)[1]["total_iterations"] == 8
 
-    separate = train(TrainConfig(**{**base_config.__dict__, "seed": 9}), tmp_path / "separate", progress=False,
-                     rerun=False)
+    separate = train(TrainConfig(**{**base_config.__dict__, "seed": 9}), tmp_path / "separate", progress=False)
     capsys.readouterr()
     assert main(["average", str(tuned[0]), str(separate), "--out", str(tmp_path / "bad.pt")]) == 2
     assert "not trained from one start" in capsys.readouterr().err
@@ -482,7 +479,7 @@ def test_training_learns_one_bed_by_heart(tmp_path, monkeypatch):
     bed = augmented_sample(config, 0)
     assert (np.unique(bed["instance"]) >= 0).sum() == 6
     monkeypatch.setattr(training, "augmented_sample", lambda config, iteration: bed)  # the forked generator inherits it
-    weights = train(config, tmp_path, progress=False, rerun=False)  # one torch thread (conftest.py)
+    weights = train(config, tmp_path, progress=False)  # one torch thread (conftest.py)
     with open(tmp_path / "history.csv") as file:
         rows = list(csv.DictReader(file))
     assert len(rows) == 300
@@ -499,11 +496,11 @@ def test_resume_goes_on_with_the_runs_own_flags(tmp_path, tiny_network):
     through; a flag given again with its own value is fine."""
     config = TrainConfig(iterations=3, network=tiny_network, validation_scenes=0, scene=SMALL_SCENES, lr=0.002,
                          checkpoint_every=1, queue_size=2)
-    straight = train(config, tmp_path / "straight", progress=False, rerun=False)
-    assert train(config, tmp_path / "resumed", progress=False, rerun=False, stop_at=2) is None
-    resumed = train(TrainConfig(), tmp_path / "resumed", resume=True, progress=False, rerun=False)
+    straight = train(config, tmp_path / "straight", progress=False)
+    assert train(config, tmp_path / "resumed", progress=False, stop_at=2) is None
+    resumed = train(TrainConfig(), tmp_path / "resumed", resume=True, progress=False)
     for a, b in zip(load_weights(straight)[0].state_dict().values(), load_weights(resumed)[0].state_dict().values()):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
     assert load_weights(resumed)[1]["train_config"]["lr"] == 0.002
     again = TrainConfig(lr=0.002, network=tiny_network)
-    assert train(again, tmp_path / "resumed", resume=True, progress=False, rerun=False) is not None
+    assert train(again, tmp_path / "resumed", resume=True, progress=False) is not None

@@ -143,15 +143,6 @@ def load_preset(name: str, visibility: str = "hpr", progress: bool = True,
     return [scenes[index] for index in range(count)]
 
 
-def log_scene(rec, scene: SyntheticScene, entity: str = "world/synthetic") -> None:
-    """A scene in Rerun: points coloured by label, the true caps as boxes and ellipsoids."""
-    from perception.rerun_log import log_caps, log_points
-
-    log_points(rec, f"{entity}/points", scene.points, colors=label_colors(scene))
-    log_caps(rec, f"{entity}/mushrooms", scene.centers, scene.rotations, scene.scales,
-             labels=[f"{2000 * r:.0f} mm" for r in scene.radii])
-
-
 MIN_VISIBLE_CAP_POINTS = 5
 """A cap counts as ground truth when at least this many of its points are visible: no method can
 find a cap the sensor did not see."""

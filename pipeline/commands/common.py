@@ -44,8 +44,6 @@ def writable_file(path: str | None, inputs: tuple[str | None, ...] = (), suffix:
     if path is None:
         return None
     file = Path(path)
-    if suffix is not None and file.suffix.lower() != suffix:
-        raise CliError(f"{path}: this file is written as {suffix[1:].upper()}; name it with {suffix}")
     if file.is_symlink():
         try:
             file = file.resolve(strict=True)
@@ -58,6 +56,8 @@ def writable_file(path: str | None, inputs: tuple[str | None, ...] = (), suffix:
     for source in inputs:
         if source is not None and Path(source).exists() and file.exists() and file.samefile(source):
             raise CliError(f"{path} is also an input of this command; pick another name to write")
+    if suffix is not None and Path(path).suffix.lower() != suffix:
+        raise CliError(f"{path}: this file is written as {suffix[1:].upper()}; name it with {suffix}")
     writable_dir(str(file.parent if str(file.parent) else "."))
     return file
 
@@ -200,6 +200,29 @@ def add_threads_flag(parser: argparse.ArgumentParser) -> None:
 def add_quiet_flag(parser: argparse.ArgumentParser, what: str = "no progress bar") -> None:
     """``--quiet``: ``what`` the command then leaves out of its output."""
     parser.add_argument("--quiet", action="store_true", help=what)
+
+
+def add_viewer_flags(parser: argparse.ArgumentParser, rrd: str | None = "also write the Rerun recording to "
+                     "this .rrd", serve_until: str = "until Ctrl-C") -> None:
+    """Where a run shows in Rerun: ``--rrd`` (with the help ``rrd``; None: the command names its own
+    file), and one of ``--spawn`` and ``--serve``; read back by ``viewer_target``."""
+    if rrd is not None:
+        parser.add_argument("--rrd", help=rrd)
+    viewer = parser.add_mutually_exclusive_group()
+    viewer.add_argument("--spawn", action="store_true", help="also show the run in a Rerun viewer")
+    viewer.add_argument("--serve", action="store_true", help="serve the Rerun web viewer (port 9090) for a "
+                        f"browser on another machine, {serve_until}")
+
+
+def viewer_target(args: argparse.Namespace, inputs: tuple[str | None, ...] = (), rrd: str | None = None,
+                  hold: bool = True):
+    """The ``pipeline.viewer.ViewerTarget`` of ``add_viewer_flags``' flags, its .rrd checked as an output
+    (``rrd``: the file when the command names its own); with ``hold``, ``--serve`` keeps serving after
+    the command's work is done."""
+    from pipeline.viewer import ViewerTarget
+
+    path = writable_file(rrd if rrd is not None else getattr(args, "rrd", None), inputs, suffix=".rrd")
+    return ViewerTarget(path, args.spawn, args.serve, hold)
 
 
 def add_pick_flags(parser: argparse.ArgumentParser) -> None:

@@ -7,9 +7,9 @@ import sys
 from pathlib import Path
 
 from pipeline.commands.common import (FILE_READINGS, SHIPPED_ZOOM, CliError, add_model_flag, add_overwrite_flag,
-                                      add_pick_flags, pick_config,
-                                      load_model, model_path, parse_readings, parse_zoom, refuse_to_replace,
-                                      replace_file, writable_file)
+                                      add_pick_flags, add_viewer_flags, load_model, model_path, parse_readings,
+                                      parse_zoom, pick_config, refuse_to_replace, replace_file, viewer_target,
+                                      writable_file)
 
 NAME = "detect"
 HELP = ("find caps in a point cloud (.ply, .pcd, .npz) or a session .mcap (its fused cloud, or its frames fused "
@@ -23,7 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "/fusion/cloud, or for a session of raw frames its frames fused as replay fuses them (the "
                         "last unit's caps, in the world frame)")
     parser.add_argument("--out", default="detections.json", help="detections JSON (default detections.json)")
-    parser.add_argument("--rrd", help="also write a Rerun recording of the result")
+    add_viewer_flags(parser)
     add_model_flag(parser)
     add_config_flags(parser, "perception.instances:ClusterConfig", {"method": {"name": "clustering"}}, only=("method",))
     parser.add_argument("--zoom", type=parse_zoom, help="scale the network reads the cloud at (default: the one "
@@ -65,8 +65,8 @@ def run(args: argparse.Namespace) -> int:
             return _detect_session(args)
         raise CliError(str(error)) from None
     out = writable_file(args.out, inputs=(args.cloud, model_path(args.model)))
-    rrd = writable_file(args.rrd, inputs=(args.cloud, model_path(args.model)))
-    if rrd is not None and rrd.resolve() == out.resolve():
+    viewer = viewer_target(args, inputs=(args.cloud, model_path(args.model)))
+    if viewer.rrd is not None and viewer.rrd.resolve() == out.resolve():
         raise CliError(f"--out and --rrd are both {args.out}; give them different names")
     if args.units == "auto" and cloud.units != "m":
         print(f"note: {args.cloud} is read in {UNIT_NAMES[cloud.units]} (its points lie {cloud.spacing:.3g} units "
@@ -77,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     T_input_bed, frame = _bed_frame(args, cloud)
     bed_points = transform_points(np.linalg.inv(T_input_bed), points)
     _refuse_unless_forced(args, not_a_bed(bed_points))
-    refuse_to_replace([out, rrd], args.overwrite)
+    refuse_to_replace([out, viewer.rrd], args.overwrite)
     clustering = ClusterConfig(method=args.method)
     try:
         if frame == "input":  # the bed plane was found here: which side is up, its caps say
@@ -95,15 +95,15 @@ def run(args: argparse.Namespace) -> int:
     _warn_outside_range(model, bed_points, result, args.cloud)
     payload = {**result.caps.to_document(frame, args.readings), "plan": plan, "T_input_bed": T_input_bed.tolist()}
     replace_file(out, json.dumps(payload, indent=1))
-    if rrd is not None:
-        from perception.detect import log_rerun
-        from pipeline.rerun_sink import default_blueprint, rerun_stream
+    print(f"detections: {out}", flush=True)
+    if viewer.wanted:
+        from pipeline.viewer import PERCEPTION, log_detection, send_blueprint, viewer_stream
 
-        extent = float(np.ptp(bed_points[:, :2], axis=0).max())
-        with rerun_stream(rrd, blueprint=default_blueprint((), T_input_bed, extent, stats=False,
-                                                            hidden=("world/perception/centers",))) as rec:
-            log_rerun(rec, result, points, plan=plan)
-    print(f"detections: {out}" + (f"  rerun: {rrd}" if rrd else ""))
+        with viewer_stream(viewer, Path(args.cloud).name) as rec:
+            send_blueprint(rec, (), T_input_bed, bed_points, stats=False, hidden=(f"{PERCEPTION}/centers",))
+            log_detection(rec, result, points, plan=plan)
+        if viewer.rrd is not None:
+            print(f"rerun: {viewer.rrd}")
     return 0
 
 
@@ -158,18 +158,18 @@ def _detect_session(args: argparse.Namespace) -> int:
     from capture.mcap.reader import McapSource
     from capture.source import SourceError
     from pipeline.runner import PerceptionStage, RunConfig
-    from pipeline.session import Outputs, run_chain
+    from pipeline.chain import Outputs, run_chain
 
     out = writable_file(args.out, inputs=(args.cloud, model_path(args.model)), suffix=".json")
-    rrd = writable_file(args.rrd, inputs=(args.cloud, model_path(args.model)), suffix=".rrd")
+    viewer = viewer_target(args, inputs=(args.cloud, model_path(args.model)))
     model, _ = load_model(args.model)
-    refuse_to_replace([out, rrd], args.overwrite)
+    refuse_to_replace([out, viewer.rrd], args.overwrite)
     source = McapSource(args.cloud)
     try:
         source.open()
         summary = run_chain(source, model, RunConfig(perception=PerceptionStage(args.method, args.readings),
                                                       plan=pick_config(args)),
-                            Outputs(rrd=rrd, detections=out, name=Path(args.cloud).name, quiet=True),
+                            Outputs(viewer=viewer, name=Path(args.cloud).name, detections=out, quiet=True),
                             sensors=max(1, len(source.sensor_ids)))
     except (SourceError, ValueError) as error:
         raise CliError(str(error)) from None
@@ -179,7 +179,7 @@ def _detect_session(args: argparse.Namespace) -> int:
     print(f"{len(result.caps)} caps in {args.cloud} (fused {summary.units} units from {summary.frames} frames; "
           "the last unit's caps, frame: world, metres)")
     _print_caps(result, summary.last_detection.unit.cloud.T_world_bed[:3, 2])
-    print(f"detections: {out}" + (f"  rerun: {rrd}" if rrd else ""))
+    print(f"detections: {out}" + (f"  rerun: {viewer.rrd}" if viewer.rrd else ""))
     return 0
 
 

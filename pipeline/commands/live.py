@@ -9,10 +9,9 @@ from pathlib import Path
 
 from capture.cameras import CAMERAS
 from pipeline.commands.common import (STOP_EXIT, CliError, CommandFailed, add_model_flag, add_overwrite_flag,
-                                      add_pick_flags, pick_config,
-                                      add_quiet_flag, add_threads_flag, load_model, parse_readings, parse_seed,
-                                      parse_threads, positive, refuse_to_replace, torch_threads, writable_file,
-                                      written_files)
+                                      add_pick_flags, add_quiet_flag, add_threads_flag, add_viewer_flags, load_model,
+                                      parse_readings, parse_seed, parse_threads, pick_config, positive,
+                                      refuse_to_replace, torch_threads, viewer_target, writable_file, written_files)
 
 NAME = "live"
 HELP = "capture, fuse and detect as frames arrive, shown in Rerun and recorded"
@@ -49,11 +48,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_flags(parser, "fusion.cloud:FusionStage", STAGE_FLAGS, only=("window",))
     parser.add_argument("--record", help="record the session (frames, fused clouds, caps) to this .mcap")
     add_overwrite_flag(parser)
-    parser.add_argument("--rrd", help="save the Rerun recording to this .rrd")
+    add_viewer_flags(parser, "save the Rerun recording to this .rrd", serve_until="while the run lasts")
     parser.add_argument("--detections", help="keep the newest caps in this JSON file")
-    viewer = parser.add_mutually_exclusive_group()
-    viewer.add_argument("--spawn", action="store_true", help="show the run in a Rerun viewer")
-    viewer.add_argument("--serve", action="store_true", help="serve the Rerun web viewer (a headless machine)")
     parser.add_argument("--serve-foxglove", nargs="?", const=FOXGLOVE_ADDRESS, type=host_and_port,
                         metavar="HOST:PORT",
                         help=f"publish every channel of the session (frames, fused clouds, caps, the pick plan on "
@@ -68,15 +64,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_quiet_flag(parser, "no line per fused unit")
 
 
-def _checked_outputs(args: argparse.Namespace) -> tuple[Path | None, Path | None, Path | None]:
-    """The --record, --rrd and --detections files, refused before any camera opens."""
+def _checked_outputs(args: argparse.Namespace) -> tuple:
+    """The --record file, the viewer (--rrd, --spawn, --serve) and the --detections file, refused before
+    any camera opens."""
     if args.playback and args.camera != "realsense":
         raise CliError("--playback plays a RealSense device file: use it with --camera realsense")
     if args.playback and not Path(args.playback).is_file():
         raise CliError(f"--playback: no device file at {args.playback}")
-    outputs = (writable_file(args.record, suffix=".mcap"), writable_file(args.rrd, suffix=".rrd"),
-               writable_file(args.detections, suffix=".json"))
-    refuse_to_replace(outputs, args.overwrite)
+    viewer = viewer_target(args, hold=False)
+    outputs = (writable_file(args.record, suffix=".mcap"), viewer, writable_file(args.detections, suffix=".json"))
+    refuse_to_replace((outputs[0], viewer.rrd, outputs[2]), args.overwrite)
     return outputs
 
 
@@ -111,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_live(args: argparse.Namespace, model, rig, pick, files: tuple, publish_to) -> int:
-    """The camera through the chain into ``files`` (--record, --rrd, --detections) and a live server."""
+    """The camera through the chain into ``files`` (--record, the viewer, --detections) and a live server."""
     from capture.mcap.writer import RecordingError
     from pipeline.signals import graceful_stop
     from capture.source import SourceError
@@ -119,10 +116,11 @@ def _run_live(args: argparse.Namespace, model, rig, pick, files: tuple, publish_
     from fusion.turntable import Rig
     from pipeline.flags import config_from_args
     from pipeline.runner import PerceptionStage, RunConfig
-    from pipeline.session import Outputs, run_chain
+    from pipeline.chain import Outputs, run_chain
     from pipeline.sources import make_source
 
-    record, rrd, detections = files
+    record, viewer, detections = files
+    rrd = viewer.rrd
     try:
         source = make_source(args.camera, args.serial, args.seed, args.views, playback=args.playback, live=True)
     except (SourceError, ImportError, ValueError) as error:
@@ -132,9 +130,8 @@ def _run_live(args: argparse.Namespace, model, rig, pick, files: tuple, publish_
     config = config_from_args(RunConfig, args, fusion=FusionStage(rig=rig, window=args.window),
                               perception=config_from_args(PerceptionStage, args),
                               plan=pick, live=True)
-    outputs = Outputs(record=record, rrd=rrd, detections=detections, spawn=args.spawn, serve=args.serve,
-                      name=f"live {args.camera} {time.strftime('%Y-%m-%d %H:%M:%S')}", quiet=args.quiet,
-                      publish_to=publish_to)
+    outputs = Outputs(record=record, viewer=viewer, name=f"live {args.camera} {time.strftime('%Y-%m-%d %H:%M:%S')}",
+                      detections=detections, quiet=args.quiet, publish_to=publish_to)
     with graceful_stop() as stop:
         try:
             summary = run_chain(source, model, config, outputs,

@@ -8,9 +8,9 @@ import sys
 from pathlib import Path
 
 from pipeline.commands.common import (STOP_EXIT, CliError, CommandFailed, add_model_flag, add_overwrite_flag,
-                                      add_quiet_flag, add_ray_flag, add_threads_flag, load_model, model_path,
-                                      parse_readings, positive, ray_options, refuse_to_replace, torch_threads,
-                                      writable_dir, writable_file, written_files)
+                                      add_quiet_flag, add_ray_flag, add_threads_flag, add_viewer_flags, load_model,
+                                      model_path, parse_readings, positive, ray_options, refuse_to_replace,
+                                      torch_threads, viewer_target, writable_dir, written_files)
 
 TOLERANCES = "pipeline.check:Tolerances"
 TOLERANCE = "tol_"
@@ -22,9 +22,9 @@ TOLERANCE_FLAGS = {
 }
 """pipeline.check.Tolerances documents none of its fields: the flags' help is here."""
 REPLAY_OPTIONS = "pipeline.replay:ReplayOptions"
-OPTION_FLAGS = {"rig": {"metavar": "RIG_JSON"}, "window": {"parse": positive(int), "metavar": "N"},
-                "readings": {"parse": parse_readings, "metavar": "N"}}
-"""How ReplayOptions' flags read their values, where the field's type is not enough."""
+FUSION_FLAGS = {"window": {"parse": positive(int), "metavar": "N"}}
+PERCEPTION_FLAGS = {"readings": {"parse": parse_readings, "metavar": "N"}}
+"""How the stages' flags read their values, where the field's type is not enough."""
 
 NAME = "replay"
 HELP = "re-run fusion and perception on a recorded session; --check compares with the detections it recorded"
@@ -39,8 +39,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "row each in OUT/report.json")
     parser.add_argument("--out", default="replay", help="output folder (default ./replay): replay.mcap, "
                         "detections.json, replay.rrd")
-    parser.add_argument("--rrd", help="the Rerun recording (default OUT/replay.rrd)")
-    add_config_flags(parser, REPLAY_OPTIONS, OPTION_FLAGS, exclude=("clustering", "readings"))
+    add_viewer_flags(parser, "the Rerun recording (default OUT/replay.rrd)")
+    add_config_flags(parser, REPLAY_OPTIONS, only=("from_stage", "speed"))
+    parser.add_argument("--rig", metavar="RIG_JSON", help="rig file from mushroom-pose calibrate (a turntable, or "
+                        "several fixed cameras)")
+    add_config_flags(parser, "fusion.cloud:FusionStage", FUSION_FLAGS, only=("window",))
     parser.add_argument("--check", action="store_true", help="compare the new caps with the recorded ones (or, "
                         "for a session without them, those of <stem>.expected.json beside it) unit by unit; exit 1 "
                         "when a cap is lost, gained or changed beyond the tolerances")
@@ -50,7 +53,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--verbose", action="store_true", help="--check: list every cap, not only changes")
     add_overwrite_flag(parser)
     add_model_flag(parser)
-    add_config_flags(parser, REPLAY_OPTIONS, OPTION_FLAGS, only=("clustering", "readings"))
+    add_config_flags(parser, "pipeline.runner:PerceptionStage", PERCEPTION_FLAGS, only=("clustering",))
+    parser.add_argument("--readings", type=parse_readings, metavar="N", help="read each fused cloud N times, turned "
+                        "a further 360/N degrees about the vertical each time, the readings averaged (default: as "
+                        "often as the session's recorded detections say they were read, once when they do not say)")
     add_threads_flag(parser)
     add_quiet_flag(parser, "no line per fused unit")
     add_ray_flag(parser, "several sessions: one Ray task each")
@@ -64,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
     from pipeline.signals import graceful_stop
     from pipeline.check import Tolerances
     from pipeline.flags import config_from_args
-    from pipeline.replay import ReplayError, ReplayOptions, read_expected, run_replay
+    from pipeline.replay import ReplayError, read_expected, run_replay
 
     if len(args.sessions) > 1 or args.ray is not None or Path(args.sessions[0]).is_dir() \
             or any(mark in args.sessions[0] for mark in "*?["):
@@ -73,7 +79,8 @@ def run(args: argparse.Namespace) -> int:
     if not session.is_file():
         raise CliError(f"{session} does not exist" if not session.exists() else f"{session} is not a file")
     out_dir = writable_dir(args.out)
-    rrd = writable_file(args.rrd or str(out_dir / "replay.rrd"), inputs=(str(session),), suffix=".rrd")
+    viewer = viewer_target(args, inputs=(str(session),), rrd=args.rrd or str(out_dir / "replay.rrd"))
+    rrd = viewer.rrd
     if (out_dir / "replay.mcap").exists() and (out_dir / "replay.mcap").samefile(session):
         raise CliError(f"{session} is the replay's own output; pick another --out")
     if args.expected and not args.check:
@@ -85,11 +92,11 @@ def run(args: argparse.Namespace) -> int:
         expected = read_expected(Path(args.expected)) if args.expected else None
     except ReplayError as error:
         raise CliError(str(error)) from None
-    options = config_from_args(ReplayOptions, args)
+    options = _options(args)
     tolerances = config_from_args(Tolerances, args, prefix=TOLERANCE) if args.check else None
     with graceful_stop() as stop:
         try:
-            result = run_replay(session, model, out_dir, rrd, options, tolerances, quiet=args.quiet,
+            result = run_replay(session, model, out_dir, viewer, options, tolerances, quiet=args.quiet,
                                 stop_requested=lambda: stop.signal if stop.requested else None,
                                 on_start=lambda text: print(f"fused unit: {text}", flush=True), expected=expected)
         except ReplayError as error:
@@ -125,10 +132,9 @@ def _replay_many(args: argparse.Namespace) -> int:
     from pipeline.check import Tolerances
     from pipeline.farm import FarmJob, expand_sessions, replay_sessions, report_table, write_report
     from pipeline.flags import config_from_args
-    from pipeline.replay import ReplayOptions
 
-    if args.rrd or args.expected:
-        raise CliError("--rrd and --expected name one session's files: replay that session alone")
+    if args.rrd or args.spawn or args.serve or args.expected:
+        raise CliError("--rrd, --spawn, --serve and --expected are for one session: replay that session alone")
     try:
         sessions = expand_sessions(args.sessions)
     except ValueError as error:
@@ -136,7 +142,7 @@ def _replay_many(args: argparse.Namespace) -> int:
     out_dir = writable_dir(args.out)
     load_model(args.model)  # a bad weights file is one error here, not one per session
     refuse_to_replace([out_dir / "report.json"], args.overwrite)
-    options = config_from_args(ReplayOptions, args)
+    options = _options(args)
     tolerances = config_from_args(Tolerances, args, prefix=TOLERANCE) if args.check else None
     job = FarmJob(str(model_path(args.model)), str(out_dir), options, tolerances, threads=args.threads or 1)
     ray = ray_options(args)
@@ -153,3 +159,22 @@ def _replay_many(args: argparse.Namespace) -> int:
     print(report_table(outcomes))
     print(f"report: {out_dir / 'report.json'}")
     return 0 if all(o.passed for o in outcomes) else 1
+
+
+def _options(args: argparse.Namespace):
+    """The ``pipeline.replay.ReplayOptions`` of the flags, the --rig file read."""
+    from fusion.cloud import FusionStage
+    from fusion.turntable import Rig
+    from pipeline.flags import config_from_args
+    from pipeline.replay import ReplayOptions
+    from pipeline.runner import PerceptionStage
+
+    rig = None
+    if args.rig:
+        try:
+            rig = Rig.load(args.rig)
+        except ValueError as error:
+            raise CliError(str(error)) from None
+    perception = config_from_args(PerceptionStage, args, readings=args.readings or PerceptionStage.readings)
+    return config_from_args(ReplayOptions, args, fusion=config_from_args(FusionStage, args, rig=rig),
+                            perception=perception, readings_as_recorded=args.readings is None)

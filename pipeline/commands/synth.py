@@ -7,8 +7,9 @@ import sys
 import time
 
 from pipeline.commands.common import (SPACING_HELP, VISIBILITY, CliError, CommandFailed, add_overwrite_flag,
-                                      add_quiet_flag, add_ray_flag, parse_mushroom_count, parse_seed, parse_spacing,
-                                      positive, ray_options, refuse_to_replace, writable_dir, writable_file)
+                                      add_quiet_flag, add_ray_flag, add_viewer_flags, parse_mushroom_count, parse_seed,
+                                      parse_spacing, positive, ray_options, refuse_to_replace, viewer_target,
+                                      writable_dir, writable_file)
 
 NAME = "synth"
 HELP = "generate synthetic mushroom beds with ground truth"
@@ -27,7 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "operator (slow)")
     parser.add_argument("--spacing", type=parse_spacing, help=f"point spacing in metres (default {SPACING_HELP})")
     parser.add_argument("--out", required=True, help="output folder")
-    parser.add_argument("--rrd", help="also log the scenes to this Rerun recording")
+    add_viewer_flags(parser, "also log the beds to this Rerun recording (one per step of the frame timeline)")
     parser.add_argument("--no-ply", action="store_true", help="write only the .npz files")
     parser.add_argument("--preview", help="also render the first bed to this PNG (shaded meshes, oblique view)")
     add_quiet_flag(parser)
@@ -38,16 +39,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from perception.synthetic.dataset import (BED_SETS, generate_many, log_scene, preset_config, scene_path,
-                                              scene_seeds, write_scene)
+    from perception.synthetic.dataset import (BED_SETS, generate_many, preset_config, scene_path, scene_seeds,
+                                              write_scene)
     from perception.synthetic.scene import SceneConfig
-    from pipeline.rerun_sink import rerun_stream, set_frame
+    from pipeline.viewer import log_scene, set_frame, viewer_stream
 
     low, high = args.mushrooms
     if high < low:
         raise CliError(f"--mushrooms range is inverted: {low} > {high}")
     preview = writable_file(args.preview, suffix=".png")
-    rrd = writable_file(args.rrd)
+    viewer = viewer_target(args)
     out = writable_dir(args.out)
     if args.preset:
         preset = BED_SETS[args.preset]
@@ -57,9 +58,9 @@ def run(args: argparse.Namespace) -> int:
         seeds = scene_seeds(args.seed, args.scenes)
         config = SceneConfig(mushrooms=(low, high), visibility=args.visibility,
                              spacing=args.spacing or SceneConfig.spacing)
-    refuse_to_replace([scene_path(out, index) for index in range(len(seeds))] + [rrd, preview], args.overwrite)
+    refuse_to_replace([scene_path(out, index) for index in range(len(seeds))] + [viewer.rrd, preview], args.overwrite)
     mushrooms, points, started = [], [], time.perf_counter()
-    with rerun_stream(rrd) as rec:
+    with viewer_stream(viewer, f"synthetic beds in {out}") as rec:
         for index, scene in enumerate(generate_many(seeds, config, progress=not args.quiet,
                                                                    **ray_options(args))):
             try:
@@ -81,8 +82,8 @@ def run(args: argparse.Namespace) -> int:
     if short:
         print(f"note: {short} of {len(seeds)} scenes hold fewer than {config.mushrooms[0]} mushrooms: the bed "
               "had no room for more", file=sys.stderr)
-    if rrd is not None:
-        print(f"rerun recording: {rrd}")
+    if viewer.rrd is not None:
+        print(f"rerun recording: {viewer.rrd}")
     if preview is not None:
         from pipeline.preview import render_bed_preview
 

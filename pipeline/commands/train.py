@@ -129,6 +129,7 @@ def _check(args: argparse.Namespace) -> None:
 def run(args: argparse.Namespace) -> int:
     from perception.train import TrainingError, train
     from perception.weights import WeightsWriteError
+    from pipeline.viewer import TrainingLog
 
     _check(args)
     try:
@@ -145,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
     torch_threads(args.threads)
     try:
         weights = train(config, run_dir, resume=args.resume, device=args.device, progress=not args.quiet,
-                        max_minutes=args.max_minutes, ray_address=args.ray)
+                        metrics_log=TrainingLog, max_minutes=args.max_minutes, ray_address=args.ray)
     except (ValueError, TrainingError, WeightsWriteError) as error:
         if new_folder and not any(run_dir.iterdir()):
             run_dir.rmdir()

@@ -10,6 +10,7 @@ from typing import Any, Callable
 
 from capture.source import Source
 from pipeline.runner import RunConfig, Runner, RunSummary
+from pipeline.viewer import ViewerTarget
 
 
 @dataclass(frozen=True)
@@ -19,12 +20,11 @@ class Outputs:
     record: Path | None = None
     """The session MCAP: frames (with ``record_frames``), fused clouds, caps."""
     record_frames: bool = True
-    rrd: Path | None = None
-    detections: Path | None = None
-    spawn: bool = False
-    serve: bool = False
+    viewer: ViewerTarget = ViewerTarget()
+    """Where the Rerun stream goes (``pipeline.viewer``)."""
     name: str | None = None
     """The recording's name in the viewer (the session's)."""
+    detections: Path | None = None
     quiet: bool = False
     publish_to: Any = None
     """A foxglove.Context a live server serves (``capture.mcap.writer.serve_session``): every channel of the
@@ -37,12 +37,11 @@ def run_chain(source: Source, model, config: RunConfig, outputs: Outputs, sensor
     """Run ``source`` through fusion and perception into the ``outputs``; raises what a stage raised,
     after every output is finalised."""
     from capture.mcap.writer import McapRecorder, SessionChannels
-    from pipeline.rerun_sink import default_blueprint, rerun_stream
     from pipeline.sinks import ConsoleSink, JsonSink, McapSink, RerunSink
+    from pipeline.viewer import viewer_stream
 
     with ExitStack() as stack:
-        rec = stack.enter_context(rerun_stream(outputs.rrd, spawn=outputs.spawn, serve=outputs.serve,
-                                               blueprint=default_blueprint(), name=outputs.name))
+        rec = stack.enter_context(viewer_stream(outputs.viewer, outputs.name))
         sinks = [ConsoleSink(outputs.quiet)]
         if rec is not None:
             sinks.append(RerunSink(rec))
