@@ -93,10 +93,40 @@ def main(argv: list[str] | None = None) -> int:
     return 130
 
 
+class _ReaderMayLeave:
+    """Standard output for a reader that may stop reading (``| head``): once the pipe breaks, the rest
+    goes nowhere and the command still finishes and writes its files."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            self._gone()
+            return len(text)
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            self._gone()
+
+    def _gone(self) -> None:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, self._stream.fileno())
+        os.close(devnull)
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)
+
+
 def console_main() -> None:
     """The ``mushroom-pose`` command. After an interrupt or a failure it exits without running exit
     handlers: Open3D, interrupted while it loaded, would print a leak report and turn status 130 into
     1, and a Rerun stream whose file writer failed (a full disk) would wait on it for ever."""
+    sys.stdout = _ReaderMayLeave(sys.stdout)
     code = main()
     if code != 0:
         sys.stdout.flush()

@@ -324,3 +324,18 @@ def test_files_are_read_four_times_and_the_live_runner_reads_once():
     assert parser.parse_args(["eval"]).readings is None
     assert parser.parse_args(["live", "--camera", "virtual"]).readings == LIVE_READINGS
     assert parser.parse_args(["replay", "session.mcap"]).readings is None
+
+
+def test_a_reader_that_stops_reading_loses_no_output_file(tmp_path):
+    """``mushroom-pose ... | head``: stdout closes before the command prints; it still writes its files,
+    exits 0 and prints no traceback."""
+    from pathlib import Path
+
+    command = [str(Path(sys.executable).with_name("mushroom-pose")), "synth", "--scenes", "1", "--mushrooms", "3", "3",
+               "--no-ply", "--quiet", "--out", str(tmp_path / "beds")]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    process.stdout.close()  # the reader is gone before the first line
+    stderr = process.stderr.read()
+    assert process.wait(timeout=120) == 0, stderr
+    assert "Traceback" not in stderr
+    assert list((tmp_path / "beds").glob("*.npz"))
