@@ -13,6 +13,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from common.geometry import transform_points
+from perception.grades import GradeTable
 
 CAP_RADIUS_AT_UNIT_SCALE = 0.020
 """Cap radius in metres of the template at scale s = 1 (a 40 mm cap)."""
@@ -156,16 +157,19 @@ class Caps:
         return replace(self, centers=transform_points(T_frame_caps, self.centers),
                        rotations=T_frame_caps[:3, :3] @ self.rotations)
 
-    def to_document(self, frame: str, readings: int) -> dict:
-        """The detection document: ``{"frame", "units": "m", "readings", "mushrooms": [one entry per cap]}``;
-        ``readings`` says how many turned readings of the cloud the caps come from (perception.detect)."""
+    def to_document(self, frame: str, readings: int, grades: GradeTable = GradeTable()) -> dict:
+        """The detection document: ``{"frame", "units": "m", "readings", "grades", "mushrooms": [one entry
+        per cap]}``; ``readings`` says how many turned readings of the cloud the caps come from
+        (perception.detect), ``grades`` is the table each cap's ``grade`` comes from."""
         scores, members = self.score_array(), self.members if self.members is not None else np.zeros(len(self))
+        diameters_mm = 2000.0 * self.radii
         caps = [{"id": k, "center": center.tolist(), "axis": rotation[:, 2].tolist(), "rotation": rotation.tolist(),
-                 "radius": float(radius), "height": float(scale[2]), "cap_diameter_mm": 2000.0 * float(radius),
-                 "score": float(score), "num_points": int(count)}
-                for k, (center, rotation, scale, radius, score, count) in
-                enumerate(zip(self.centers, self.rotations, self.scales, self.radii, scores, members))]
-        return {"frame": frame, "units": "m", "readings": readings, "mushrooms": caps}
+                 "radius": float(radius), "height": float(scale[2]), "cap_diameter_mm": float(diameter),
+                 "grade": grade, "score": float(score), "num_points": int(count)}
+                for k, (center, rotation, scale, radius, diameter, grade, score, count) in
+                enumerate(zip(self.centers, self.rotations, self.scales, self.radii, diameters_mm,
+                              grades.grade_of(diameters_mm), scores, members))]
+        return {"frame": frame, "units": "m", "readings": readings, "grades": grades.to_document(), "mushrooms": caps}
 
     @staticmethod
     def from_document(document: dict) -> "Caps":

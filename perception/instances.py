@@ -107,8 +107,9 @@ def _mean_shift(collapsed: np.ndarray, bandwidth: float, min_points: int, seedin
     if seeding != "peaks":
         return labels
     # a small cap right beside a big one may have no peak bin of its own: seed the peaks of what is
-    # left over (bins of min_points, so that scattered leftovers seed nothing) and climb on all points, so that seeds in a big cap's tail climb back to its
-    # centre; centres a bandwidth away from every first-pass centre are new caps
+    # left over (bins of min_points, so that scattered leftovers seed nothing) and climb on all points,
+    # so that seeds in a big cap's tail climb back to its centre; centres a bandwidth away from every
+    # first-pass centre are new caps
     left = np.flatnonzero(labels < 0)
     seeds = peak_seeds(collapsed[left], bandwidth, min_points)
     if len(seeds) == 0:

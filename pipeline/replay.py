@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Literal
 
 from fusion.cloud import FusionStage
+from perception.grades import GradeTable
 from pipeline.check import CheckReport, Tolerances, compare
 from pipeline.runner import PerceptionStage, RunSummary
 
@@ -31,6 +32,8 @@ class ReplayOptions:
     readings_as_recorded: bool = True
     """Read each unit as often as the session's recorded detections say (once when they do not say)
     rather than ``perception.readings`` times, so that a replay reads as the run did."""
+    grades: GradeTable = field(default_factory=GradeTable)
+    """The table each cap's grade comes from."""
 
     @property
     def realtime(self) -> bool:
@@ -155,9 +158,10 @@ def run_replay(session: Path, model, out_dir: Path, viewer=None, options: Replay
     # a checked replay stops after as many units as it is checked against, as the run it replays stopped:
     # a live run records the frames that came while its last unit was detected, and fuses none of them
     config = RunConfig(fusion=replace(options.fusion, recorded=recorded), perception=perception,
-                       live=options.realtime, max_units=len(expected) if check is not None else None)
-    outputs = Outputs(record=out_dir / "replay.mcap", viewer=viewer or ViewerTarget(), name=f"replay of {session.name}",
-                      detections=out_dir / "detections.json", quiet=quiet)
+                       grades=options.grades, live=options.realtime,
+                       max_units=len(expected) if check is not None else None)
+    outputs = Outputs(record=out_dir / "replay.mcap", viewer=viewer or ViewerTarget(),
+                      name=f"replay of {session.name}", detections=out_dir / "detections.json", quiet=quiet)
     frames = Paced(source) if options.realtime else source
     try:
         summary = run_chain(frames, model, config, outputs, sensors=max(1, len(sensor_ids)),

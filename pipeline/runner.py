@@ -21,6 +21,7 @@ from typing import Callable
 from capture.frames import DepthFrame
 from capture.source import Source
 from fusion.cloud import FusedCloud, FusionStage, UnitBuilder
+from perception.grades import GradeTable
 from perception.instances import ClusteringMethod
 from perception.plan import PickConfig
 from pipeline.perception_process import PerceptionProcess
@@ -44,6 +45,7 @@ class RunConfig:
     fusion: FusionStage = field(default_factory=FusionStage)
     perception: PerceptionStage = field(default_factory=PerceptionStage)
     plan: PickConfig = field(default_factory=PickConfig)
+    grades: GradeTable = field(default_factory=GradeTable)
     queue_frames: int = 64
     """Frames that may wait for fusion; a live camera never waits for more room."""
     live: bool = False
@@ -246,8 +248,9 @@ class Runner:
                 found = (self._detector.detect(cloud.points, clustering, readings) if self._detector is not None
                          else detect_points(self.model, cloud.points, clustering, readings=readings))
                 result = transform_result(found, cloud.T_world_bed, "world")
-                document = {**result.caps.to_document("world", readings),
-                            "plan": plan_of_result(found, cloud.points, self.config.plan, cloud.T_world_bed)}
+                document = {**result.caps.to_document("world", readings, self.config.grades),
+                            "plan": plan_of_result(found, cloud.points, self.config.plan, cloud.T_world_bed),
+                            "T_world_bed": cloud.T_world_bed.tolist()}
                 now = time.perf_counter()
                 detection = Detection(unit, result, document, now - started,
                                       now - unit.last_arrival)

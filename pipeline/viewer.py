@@ -34,7 +34,8 @@ PERCEPTION = f"{WORLD}/perception"
 SYNTHETIC = f"{WORLD}/synthetic"
 """A synthetic bed: its points by label and its true caps."""
 STATS = "stats"
-"""Time series: the runner's ``latency/<stage>`` and ``counts/<what>``, training's ``loss/<term>`` and ``val/<metric>``."""
+"""Time series: the runner's ``latency/<stage>`` and ``counts/<what>``, training's ``loss/<term>`` and
+``val/<metric>``."""
 HIDDEN_BY_DEFAULT = (f"{PERCEPTION}/existence", f"{PERCEPTION}/centers")
 """The network's per-point existence and collapsed centres: there to inspect, not to read the bed by."""
 

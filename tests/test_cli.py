@@ -201,6 +201,11 @@ def test_the_parser_restates_its_choices_as_the_libraries_define_them():
     assert detect.LIVE_READINGS == PerceptionStage.readings  # the runner reads as the library does
     assert ReplayOptions.readings_as_recorded  # a replay reads as often as the session's detections say
     assert MAX_READINGS == detect.MAX_READINGS
+    from perception.grades import GradeTable
+    from pipeline.commands.common import DEFAULT_GRADES_HELP
+
+    assert DEFAULT_GRADES_HELP == ", ".join(f"{grade.name} from {grade.from_mm:g}" + (" mm" if k == 0 else "")
+                                            for k, grade in enumerate(GradeTable().grades))
 
 
 def test_building_the_parser_imports_no_heavy_library():

@@ -10,6 +10,7 @@ import pytest
 
 from perception.synthetic.scene import SceneConfig, generate_scene
 from helpers import rrd_entity_rows, write_tiny_weights
+from perception.grades import GradeTable
 from pipeline.clouds import load_cloud
 
 
@@ -68,8 +69,9 @@ def test_detect_writes_json_in_the_input_frame(tmp_path, scene_ply):
     assert len(payload["mushrooms"]) == len(scene.centers) == 6  # measured: all 6 found
     assert [m["id"] for m in payload["mushrooms"]] == list(range(6))
     for m in payload["mushrooms"]:
-        assert set(m) == {"id", "center", "axis", "rotation", "radius", "height", "cap_diameter_mm", "score",
-                          "num_points"}
+        assert set(m) == {"id", "center", "axis", "rotation", "radius", "height", "cap_diameter_mm", "grade",
+                          "score", "num_points"}
+        assert m["grade"] == GradeTable().grade_of([m["cap_diameter_mm"]])[0]
         assert 0 < m["score"] and 0 < m["height"] < m["radius"] and m["num_points"] > 0
     rows = rrd_entity_rows(tmp_path / "det.rrd")
     assert rows["/world/perception/existence"] == 1 and rows["/world/perception/centers"] == 1
@@ -421,3 +423,23 @@ def test_detect_turns_the_bed_the_way_its_caps_stand_wherever_the_origin_lies(tm
     document = json.loads(out.read_text())
     assert np.asarray(document["T_input_bed"])[2, 2] > 0.99
     assert 13 <= len(document["mushrooms"]) <= 17
+
+
+def test_detect_grades_caps_by_the_growers_table(tmp_path, scene_ply):
+    """--grades: every cap graded by the file's table, the table in the document; a bad table is one line."""
+    ply, _ = scene_ply
+    table = tmp_path / "grades.toml"
+    table.write_text('[[grades]]\nname = "small"\nfrom_mm = 0\n\n[[grades]]\nname = "large"\nfrom_mm = 45\n')
+    out = tmp_path / "d.json"
+    result = run("detect", ply, "--out", out, "--grades", table, "--readings", "1")  # the shipped model
+    assert result.returncode == 0, result.stderr
+    document = json.loads(out.read_text())
+    assert document["grades"] == [{"name": "small", "from_mm": 0.0}, {"name": "large", "from_mm": 45.0}]
+    assert document["mushrooms"]
+    for cap in document["mushrooms"]:
+        assert cap["grade"] == ("large" if cap["cap_diameter_mm"] >= 45 else "small")
+    assert {cap["grade"] for cap in document["mushrooms"]} == {"small", "large"}  # measured: the bed holds both
+    table.write_text('[[grades]]\nname = "small"\n')
+    one_line_error(run("detect", ply, "--out", tmp_path / "e.json", "--grades", table),
+                   "without 'from_mm'")
+    assert not (tmp_path / "e.json").exists()

@@ -225,6 +225,29 @@ def viewer_target(args: argparse.Namespace, inputs: tuple[str | None, ...] = (),
     return ViewerTarget(path, args.spawn, args.serve, hold)
 
 
+DEFAULT_GRADES_HELP = "small button from 0 mm, button from 25, closed cup from 40, open cup from 55, flat from 70"
+"""perception.grades.GradeTable's default, as ``--grades`` says it (numpy is not loaded to build a parser)."""
+
+
+def add_grades_flag(parser: argparse.ArgumentParser) -> None:
+    """``--grades FILE``: the grower's grade table (``perception.grades``), read back by ``grade_table``."""
+    parser.add_argument("--grades", metavar="FILE", help="grade each cap by this table of named classes by cap "
+                        "diameter (.json or .toml: grades = a list of {name, from_mm}, smallest first; default: "
+                        f"{DEFAULT_GRADES_HELP})")
+
+
+def grade_table(args: argparse.Namespace):
+    """The ``perception.grades.GradeTable`` of ``--grades`` (the default table without it)."""
+    from perception.grades import GradeTable
+
+    if args.grades is None:
+        return GradeTable()
+    try:
+        return GradeTable.load(args.grades)
+    except ValueError as error:
+        raise CliError(str(error)) from None
+
+
 def add_pick_flags(parser: argparse.ArgumentParser) -> None:
     """The gripper and the pick size (``perception.plan.PickConfig``), read back by ``pick_config``."""
     from pipeline.flags import add_config_flags

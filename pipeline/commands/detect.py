@@ -7,9 +7,9 @@ import sys
 from pathlib import Path
 
 from pipeline.commands.common import (FILE_READINGS, SHIPPED_ZOOM, CliError, add_model_flag, add_overwrite_flag,
-                                      add_pick_flags, add_viewer_flags, load_model, model_path, parse_readings,
-                                      parse_zoom, pick_config, refuse_to_replace, replace_file, viewer_target,
-                                      writable_file)
+                                      add_grades_flag, add_pick_flags, add_viewer_flags, grade_table, load_model,
+                                      model_path, parse_readings, parse_zoom, pick_config, refuse_to_replace,
+                                      replace_file, viewer_target, writable_file)
 
 NAME = "detect"
 HELP = ("find caps in a point cloud (.ply, .pcd, .npz) or a session .mcap (its fused cloud, or its frames fused "
@@ -38,6 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "are a bed's; a .npz scene is in metres)")
     parser.add_argument("--bed-frame", action="store_true",
                         help="the cloud is already in the bed frame (z up, origin on the bed plane; checked)")
+    add_grades_flag(parser)
     add_pick_flags(parser)
     add_overwrite_flag(parser)
     parser.add_argument("--force", action="store_true",
@@ -57,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     from perception.plan import plan_of_result
     from pipeline.clouds import load_cloud
 
-    pick = pick_config(args)
+    pick, grades = pick_config(args), grade_table(args)
     try:
         cloud = load_cloud(Path(args.cloud), args.units)
     except ValueError as error:
@@ -91,9 +92,10 @@ def run(args: argparse.Namespace) -> int:
     plan = plan_of_result(result, bed_points, pick, T_input_bed)
     result = transform_result(result, T_input_bed, frame)
     print(f"{len(result.caps)} caps in {args.cloud} ({len(points)} points, frame: {frame}, metres)")
-    _print_caps(result, T_input_bed[:3, 2])
+    _print_caps(result, T_input_bed[:3, 2], grades)
     _warn_outside_range(model, bed_points, result, args.cloud)
-    payload = {**result.caps.to_document(frame, args.readings), "plan": plan, "T_input_bed": T_input_bed.tolist()}
+    payload = {**result.caps.to_document(frame, args.readings, grades), "plan": plan,
+               "T_input_bed": T_input_bed.tolist()}
     replace_file(out, json.dumps(payload, indent=1))
     print(f"detections: {out}", flush=True)
     if viewer.wanted:
@@ -168,7 +170,7 @@ def _detect_session(args: argparse.Namespace) -> int:
     try:
         source.open()
         summary = run_chain(source, model, RunConfig(perception=PerceptionStage(args.method, args.readings),
-                                                      plan=pick_config(args)),
+                                                      plan=pick_config(args), grades=grade_table(args)),
                             Outputs(viewer=viewer, name=Path(args.cloud).name, detections=out, quiet=True),
                             sensors=max(1, len(source.sensor_ids)))
     except (SourceError, ValueError) as error:
@@ -178,7 +180,7 @@ def _detect_session(args: argparse.Namespace) -> int:
     result = summary.last_detection.result
     print(f"{len(result.caps)} caps in {args.cloud} (fused {summary.units} units from {summary.frames} frames; "
           "the last unit's caps, frame: world, metres)")
-    _print_caps(result, summary.last_detection.unit.cloud.T_world_bed[:3, 2])
+    _print_caps(result, summary.last_detection.unit.cloud.T_world_bed[:3, 2], grade_table(args))
     print(f"detections: {out}" + (f"  rerun: {viewer.rrd}" if viewer.rrd else ""))
     return 0
 
@@ -201,13 +203,14 @@ def _warn_outside_range(model, bed_points, result, cloud: str) -> None:
               "and that it shows a bed seen from above", file=sys.stderr)
 
 
-def _print_caps(result, up) -> None:
-    """One line per cap: centre (mm), tilt from ``up`` (deg), diameter (mm) and score."""
+def _print_caps(result, up, grades) -> None:
+    """One line per cap: centre (mm), tilt from ``up`` (deg), diameter (mm), score and grade."""
     from perception.cap import tilt_deg
 
     caps = result.caps
     if len(caps):
-        print(f"{'id':>3} {'x mm':>8} {'y mm':>8} {'z mm':>8} {'tilt deg':>8} {'cap mm':>7} {'score':>6}")
-    for k, ((x, y, z), tilt, radius, score) in enumerate(zip(1000 * caps.centers, tilt_deg(caps.axes, up), caps.radii,
-                                                           caps.score_array())):
-        print(f"{k:>3} {x:>8.1f} {y:>8.1f} {z:>8.1f} {float(tilt):>8.1f} {2000 * radius:>7.1f} {score:>6.2f}")
+        print(f"{'id':>3} {'x mm':>8} {'y mm':>8} {'z mm':>8} {'tilt deg':>8} {'cap mm':>7} {'score':>6}  grade")
+    for k, ((x, y, z), tilt, radius, score, grade) in enumerate(zip(
+            1000 * caps.centers, tilt_deg(caps.axes, up), caps.radii, caps.score_array(),
+            grades.grade_of(2000 * caps.radii))):
+        print(f"{k:>3} {x:>8.1f} {y:>8.1f} {z:>8.1f} {float(tilt):>8.1f} {2000 * radius:>7.1f} {score:>6.2f}  {grade}")

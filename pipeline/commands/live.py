@@ -8,10 +8,11 @@ import time
 from pathlib import Path
 
 from capture.cameras import CAMERAS
-from pipeline.commands.common import (STOP_EXIT, CliError, CommandFailed, add_model_flag, add_overwrite_flag,
-                                      add_pick_flags, add_quiet_flag, add_threads_flag, add_viewer_flags, load_model,
-                                      parse_readings, parse_seed, parse_threads, pick_config, positive,
-                                      refuse_to_replace, torch_threads, viewer_target, writable_file, written_files)
+from pipeline.commands.common import (STOP_EXIT, CliError, CommandFailed, add_grades_flag, add_model_flag,
+                                      add_overwrite_flag, add_pick_flags, add_quiet_flag, add_threads_flag,
+                                      add_viewer_flags, grade_table, load_model, parse_readings, parse_seed,
+                                      parse_threads, pick_config, positive, refuse_to_replace, torch_threads,
+                                      viewer_target, writable_file, written_files)
 
 NAME = "live"
 HELP = "capture, fuse and detect as frames arrive, shown in Rerun and recorded"
@@ -59,6 +60,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_flags(parser, "pipeline.sources:VirtualBed", BED_FLAGS, only=tuple(BED_FLAGS))
     add_model_flag(parser)
     add_config_flags(parser, "pipeline.runner:PerceptionStage", PERCEPTION_FLAGS)
+    add_grades_flag(parser)
     add_pick_flags(parser)
     add_threads_flag(parser)
     add_quiet_flag(parser, "no line per fused unit")
@@ -87,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
     from fusion.turntable import Rig
 
     files = _checked_outputs(args)
-    pick = pick_config(args)
+    pick, grades = pick_config(args), grade_table(args)
     rig = None
     if args.rig:
         try:
@@ -104,10 +106,10 @@ def run(args: argparse.Namespace) -> int:
             print(f"Foxglove server: ws://{args.serve_foxglove[0]}:{port}", flush=True)
         model, _ = load_model(args.model)
         torch_threads(args.threads)
-        return _run_live(args, model, rig, pick, files, publish_to)
+        return _run_live(args, model, rig, pick, grades, files, publish_to)
 
 
-def _run_live(args: argparse.Namespace, model, rig, pick, files: tuple, publish_to) -> int:
+def _run_live(args: argparse.Namespace, model, rig, pick, grades, files: tuple, publish_to) -> int:
     """The camera through the chain into ``files`` (--record, the viewer, --detections) and a live server."""
     from capture.mcap.writer import RecordingError
     from pipeline.signals import graceful_stop
@@ -129,7 +131,7 @@ def _run_live(args: argparse.Namespace, model, rig, pick, files: tuple, publish_
         rig = Rig(source.turntable)
     config = config_from_args(RunConfig, args, fusion=FusionStage(rig=rig, window=args.window),
                               perception=config_from_args(PerceptionStage, args),
-                              plan=pick, live=True)
+                              plan=pick, grades=grades, live=True)
     outputs = Outputs(record=record, viewer=viewer, name=f"live {args.camera} {time.strftime('%Y-%m-%d %H:%M:%S')}",
                       detections=detections, quiet=args.quiet, publish_to=publish_to)
     with graceful_stop() as stop:

@@ -7,10 +7,11 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipeline.commands.common import (STOP_EXIT, CliError, CommandFailed, add_model_flag, add_overwrite_flag,
-                                      add_quiet_flag, add_ray_flag, add_threads_flag, add_viewer_flags, load_model,
-                                      model_path, parse_readings, positive, ray_options, refuse_to_replace,
-                                      torch_threads, viewer_target, writable_dir, written_files)
+from pipeline.commands.common import (STOP_EXIT, CliError, CommandFailed, add_grades_flag, add_model_flag,
+                                      add_overwrite_flag, add_quiet_flag, add_ray_flag, add_threads_flag,
+                                      add_viewer_flags, grade_table, load_model, model_path, parse_readings, positive,
+                                      ray_options, refuse_to_replace, torch_threads, viewer_target, writable_dir,
+                                      written_files)
 
 TOLERANCES = "pipeline.check:Tolerances"
 TOLERANCE = "tol_"
@@ -52,6 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_flags(parser, TOLERANCES, TOLERANCE_FLAGS, prefix=TOLERANCE)
     parser.add_argument("--verbose", action="store_true", help="--check: list every cap, not only changes")
     add_overwrite_flag(parser)
+    add_grades_flag(parser)
     add_model_flag(parser)
     add_config_flags(parser, "pipeline.runner:PerceptionStage", PERCEPTION_FLAGS, only=("clustering",))
     parser.add_argument("--readings", type=parse_readings, metavar="N", help="read each fused cloud N times, turned "
@@ -177,4 +179,5 @@ def _options(args: argparse.Namespace):
             raise CliError(str(error)) from None
     perception = config_from_args(PerceptionStage, args, readings=args.readings or PerceptionStage.readings)
     return config_from_args(ReplayOptions, args, fusion=config_from_args(FusionStage, args, rig=rig),
-                            perception=perception, readings_as_recorded=args.readings is None)
+                            perception=perception, readings_as_recorded=args.readings is None,
+                            grades=grade_table(args))
