@@ -20,6 +20,8 @@ class Outputs:
     record: Path | None = None
     """The session MCAP: frames (with ``record_frames``), fused clouds, caps."""
     record_frames: bool = True
+    bed_id: str | None = None
+    """The bed the session scans, recorded with its first frame."""
     viewer: ViewerTarget = ViewerTarget()
     """Where the Rerun stream goes (``pipeline.viewer``)."""
     name: str | None = None
@@ -46,10 +48,10 @@ def run_chain(source: Source, model, config: RunConfig, outputs: Outputs, sensor
         if rec is not None:
             sinks.append(RerunSink(rec))
         if outputs.record is not None:
-            sinks.append(McapSink(McapRecorder(outputs.record, overwrite=overwrite, context=outputs.publish_to),
-                                  frames=outputs.record_frames))
+            sinks.append(McapSink(McapRecorder(outputs.record, overwrite=overwrite, context=outputs.publish_to,
+                                               bed_id=outputs.bed_id), frames=outputs.record_frames))
         elif outputs.publish_to is not None:
-            sinks.append(McapSink(SessionChannels(outputs.publish_to)))
+            sinks.append(McapSink(SessionChannels(outputs.publish_to, outputs.bed_id)))
         if outputs.detections is not None:
             sinks.append(JsonSink(outputs.detections))
         return Runner(source, model, config, sinks, sensors, on_start, stop_requested).run()

@@ -10,12 +10,13 @@ import sys
 import threading
 
 from pipeline.commands import (average, calibrate, cameras, demo, detect, evaluate, live, record, recover, replay,
-                               report, synth, train)
+                               report, synth, track, train)
 from common.distributed import RayUnavailable
 from pipeline.commands.common import CliError, CommandFailed
 from pipeline.process import reuse_freed_memory
 
-COMMANDS = (synth, train, average, detect, evaluate, demo, cameras, record, recover, live, replay, calibrate, report)
+COMMANDS = (synth, train, average, detect, evaluate, demo, cameras, record, recover, live, replay, calibrate, report,
+            track)
 """The command modules (``NAME``, ``HELP``, ``add_arguments(parser)``, ``run(args)``), in ``--help``'s order."""
 
 

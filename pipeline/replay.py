@@ -117,7 +117,7 @@ def run_replay(session: Path, model, out_dir: Path, viewer=None, options: Replay
     detections.json: the last unit's caps) and the ``pipeline.viewer.ViewerTarget`` ``viewer`` (None:
     no viewer); with ``check``, compare every unit's caps with
     ``expected``, by default those the session recorded."""
-    from capture.mcap.reader import McapSource, TruncatedRecordingWarning, read_fused_units
+    from capture.mcap.reader import McapSource, TruncatedRecordingWarning, read_fused_units, read_session_info
     from capture.source import Paced, SourceError
     from fusion.cloud import FusedCloud
     from pipeline.chain import Outputs, run_chain
@@ -160,8 +160,15 @@ def run_replay(session: Path, model, out_dir: Path, viewer=None, options: Replay
     config = RunConfig(fusion=replace(options.fusion, recorded=recorded), perception=perception,
                        grades=options.grades, live=options.realtime,
                        max_units=len(expected) if check is not None else None)
+    info = None
+    if session.suffix == ".mcap":
+        try:
+            info = read_session_info(session)
+        except SourceError:  # a session cut short: its frames replay all the same
+            pass
     outputs = Outputs(record=out_dir / "replay.mcap", viewer=viewer or ViewerTarget(),
-                      name=f"replay of {session.name}", detections=out_dir / "detections.json", quiet=quiet)
+                      name=f"replay of {session.name}", detections=out_dir / "detections.json", quiet=quiet,
+                      bed_id=(info or {}).get("bed_id"))
     frames = Paced(source) if options.realtime else source
     try:
         summary = run_chain(frames, model, config, outputs, sensors=max(1, len(sensor_ids)),

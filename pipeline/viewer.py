@@ -33,6 +33,9 @@ PERCEPTION = f"{WORLD}/perception"
 (``mushrooms``: boxes, ellipsoids, labels) and the pick plan (``plan``)."""
 SYNTHETIC = f"{WORLD}/synthetic"
 """A synthetic bed: its points by label and its true caps."""
+TRACK = f"{WORLD}/track"
+"""``track``: one bed's scans in the first scan's frame (``cloud``), its caps with the ids they keep
+(``mushrooms``), over the ``scan`` timeline."""
 STATS = "stats"
 """Time series: the runner's ``latency/<stage>`` and ``counts/<what>``, training's ``loss/<term>`` and
 ``val/<metric>``."""
@@ -280,6 +283,20 @@ def log_scene(rec: rr.RecordingStream, scene) -> None:
     rec.log(f"{SYNTHETIC}/points", rr.Points3D(scene.points, colors=label_colors(scene), radii=0.0015))
     log_caps(rec, f"{SYNTHETIC}/mushrooms", scene.centers, scene.rotations, scene.scales,
              labels=[f"{2000 * r:.0f} mm" for r in scene.radii], color=TRUE_CAP_COLOR)
+
+
+def log_scan(rec: rr.RecordingStream, index: int, points: np.ndarray, caps, T_first_scan: np.ndarray,
+             ids: list[int]) -> None:
+    """Scan ``index`` of a tracked bed on the ``scan`` timeline: its cloud moved into the first scan's
+    frame by ``T_first_scan``, its caps (already there) labelled with the ids they keep."""
+    from fusion.cloud import height_colors
+
+    rec.set_time("scan", sequence=index)
+    aligned = points @ T_first_scan[:3, :3].T + T_first_scan[:3, 3]
+    ground = np.percentile(aligned[:, 2], 10) if len(aligned) else 0.0
+    rec.log(f"{TRACK}/cloud", rr.Points3D(aligned, colors=height_colors(aligned[:, 2] - ground), radii=0.0008))
+    log_caps(rec, f"{TRACK}/mushrooms", caps.centers, caps.rotations, caps.scales,
+             labels=[f"#{cap_id} {2000 * radius:.0f} mm" for cap_id, radius in zip(ids, caps.radii)])
 
 
 def log_stat(rec: rr.RecordingStream, name: str, value: float) -> None:

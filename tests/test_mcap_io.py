@@ -129,13 +129,15 @@ def test_plain_mcap_reader_sees_foxglove_topics_and_schemas(tmp_path, frames):
         channels = {c.topic: c for c in summary.channels.values()}
         schema = {topic: summary.schemas[c.schema_id].name for topic, c in channels.items()}
         counts = {topic: summary.statistics.channel_message_counts[c.id] for topic, c in channels.items()}
-        assert {topic: schema[topic] for topic in channels if not topic.endswith(("/meta", "_json"))} == {
+        assert {topic: schema[topic] for topic in channels
+                if not topic.endswith(("/meta", "_json")) and topic != "/session"} == {
             "/camera/a/depth": "sensor_msgs/msg/Image", "/camera/b/depth": "sensor_msgs/msg/Image",
             "/camera/b/color": "foxglove.RawImage", "/camera/a/calibration": "foxglove.CameraCalibration",
             "/camera/b/calibration": "foxglove.CameraCalibration", "/tf": "foxglove.FrameTransforms",
             "/fusion/cloud": "foxglove.PointCloud"}
         assert {"/camera/a/meta", "/camera/b/meta", "/perception/mushrooms_json"} <= channels.keys()
-        assert channels["/camera/a/meta"].message_encoding == "json"
+        assert channels["/camera/a/meta"].message_encoding == channels["/session"].message_encoding == "json"
+        assert counts["/session"] == 1
         assert counts["/camera/a/depth"] == 4 and counts["/camera/b/color"] == 3 and counts["/tf"] == 6
 
         by_time = {(f"camera/{f.sensor_id}", f.timestamp_ns): f for f in frames}
@@ -308,17 +310,21 @@ capture.mcap.writer.record(Stalls(), {path!r}, progress=False,
 def _frames_in_closed_chunks(path, frames: int) -> int:
     """Of the frames in a finalised recording, those whose every message lies in a chunk other than the
     file's last one."""
-    from mcap.records import Chunk, Message
+    from mcap.records import Channel, Chunk, Message
     from mcap.stream_reader import StreamReader, breakup_chunk
 
-    parts, chunks = collections.Counter(), []
+    parts, chunks, topics = collections.Counter(), [], {}
     with open(path, "rb") as file:
         for item in StreamReader(file, emit_chunks=True).records:
             if isinstance(item, Chunk):
                 chunks.append(breakup_chunk(item))
+            elif isinstance(item, Channel):
+                topics[item.id] = item.topic
+    for chunk in chunks:
+        topics.update({item.id: item.topic for item in chunk if isinstance(item, Channel)})
     for chunk in chunks[:-1]:
         for item in chunk:
-            if isinstance(item, Message):
+            if isinstance(item, Message) and topics[item.channel_id] != "/session":  # a frame's own messages
                 parts[item.log_time] += 1
     # TickSource's frames have no colour and no pose: depth, calibration and meta
     assert len(chunks) > 2 and sum(parts.values()) < 3 * frames
@@ -465,3 +471,15 @@ def test_a_session_whose_depth_is_a_foxglove_raw_image_is_read(tmp_path):
     writer.close()
     (frame,) = list(McapSource(path))
     assert np.array_equal(frame.depth, depth) and frame.timestamp_ns == t and frame.intrinsics == INTRINSICS
+
+
+def test_a_session_says_which_bed_it_scans_and_when_it_began(tmp_path, frames):
+    from capture.mcap.reader import read_session_info
+
+    path = tmp_path / "bed.mcap"
+    with McapRecorder(path, bed_id="bay 3, bed 12") as recorder:
+        for frame in frames:
+            recorder.write(frame)
+    first = min(frame.timestamp_ns for frame in frames[:1])
+    assert read_session_info(path) == {"bed_id": "bay 3, bed 12", "started_ns": first}
+    assert_same_frames(list(McapSource(path)), frames)  # frames read back as they were

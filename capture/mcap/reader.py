@@ -15,7 +15,8 @@ from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 
 from capture.frames import CameraIntrinsics, DepthFrame
-from capture.mcap.schema import CAMERA_TOPIC, DETECTIONS_TOPIC, FUSED_CLOUD_TOPIC, MCAP_MAGIC, UNIT_TOPIC, Decoders
+from capture.mcap.schema import (CAMERA_TOPIC, DETECTIONS_TOPIC, FUSED_CLOUD_TOPIC, MCAP_MAGIC, SESSION_TOPIC,
+                                 UNIT_TOPIC, Decoders)
 from capture.source import Source, SourceError
 
 
@@ -266,3 +267,8 @@ def read_documents(path: str | os.PathLike, topic: str = DETECTIONS_TOPIC) -> li
     return [(log_time, message) for _, log_time, message in _decoded(Path(path), [topic])]
 
 
+def read_session_info(path: str | os.PathLike) -> dict | None:
+    """The session's ``{"bed_id", "started_ns"}`` (``SESSION_TOPIC``), None for a session that does not say."""
+    for _, _, message in _decoded(Path(path), [SESSION_TOPIC]):
+        return message
+    return None

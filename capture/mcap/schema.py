@@ -50,6 +50,9 @@ META_SCHEMA = {
 }
 
 
+SESSION_TOPIC = "/session"
+"""JSON, once, with the session's first frame: ``{"bed_id", "started_ns"}``, which bed it scans (None:
+not said) and when it began, so scans of one bed over days can be put in order (``track``)."""
 FUSED_CLOUD_TOPIC = "/fusion/cloud"
 DETECTIONS_TOPIC = "/perception/mushrooms_json"
 CAPS_TOPIC = "/perception/mushrooms"

@@ -24,7 +24,7 @@ from foxglove.messages import (CameraCalibration, FrameTransform, FrameTransform
                                SceneUpdate, Timestamp, Vector3)
 
 from capture.frames import DepthFrame
-from capture.mcap.schema import META_SCHEMA, ROS2_IMAGE_SCHEMA, ros2_image
+from capture.mcap.schema import META_SCHEMA, ROS2_IMAGE_SCHEMA, SESSION_TOPIC, ros2_image
 from capture.source import Source, StopRequest
 
 _COMPRESSION = {"zstd": MCAPCompression.Zstd, "lz4": MCAPCompression.Lz4, "none": None, None: None}
@@ -79,7 +79,9 @@ class SessionChannels:
     """The session's topics as foxglove-sdk channels of one Context: every message goes to whatever the
     context feeds (the session MCAP, a live WebSocket server, or both), as it is written."""
 
-    def __init__(self, context: foxglove.Context | None = None) -> None:
+    def __init__(self, context: foxglove.Context | None = None, bed_id: str | None = None) -> None:
+        """``bed_id``: the bed the session scans, written with its first frame (``SESSION_TOPIC``)."""
+        self.bed_id = bed_id
         self.frames = 0
         self._messages = 0  # whole frames, documents and clouds
         self._context = context if context is not None else foxglove.Context()
@@ -107,6 +109,9 @@ class SessionChannels:
         if frame.color is not None and (frame.color.dtype != np.uint8 or frame.color.ndim != 3
                                         or frame.color.shape[2] != 3):
             raise ValueError(f"colour must be HxWx3 uint8 (rgb8), got {frame.color.dtype} {frame.color.shape}")
+        if self.frames == 0:  # part of the first frame: no whole message until the frame is
+            self._channel(SESSION_TOPIC, foxglove.Channel, schema={"type": "object"}).log(
+                json.dumps({"bed_id": self.bed_id, "started_ns": t}).encode(), log_time=t)
         k, stamp, frame_id = frame.intrinsics, _timestamp(t), f"camera/{sensor}"
         prefix = f"/camera/{sensor}"
         self._channel(f"{prefix}/depth", foxglove.Channel, message_encoding="cdr", schema=ROS2_IMAGE_SCHEMA).log(
@@ -247,9 +252,11 @@ class McapRecorder(SessionChannels):
     """
 
     def __init__(self, path: str | os.PathLike, compression: str | None = "zstd", *,
-                 chunk_size: int = 1 << 20, overwrite: bool = False, context: foxglove.Context | None = None) -> None:
+                 chunk_size: int = 1 << 20, overwrite: bool = False, context: foxglove.Context | None = None,
+                 bed_id: str | None = None) -> None:
         """``compression``: "zstd", "lz4" or None; ``chunk_size``: uncompressed bytes per chunk, which is
-        also about how much a hard kill can lose; ``context``: one a live server publishes as well."""
+        also about how much a hard kill can lose; ``context``: one a live server publishes as well;
+        ``bed_id``: the bed the session scans."""
         if compression not in _COMPRESSION:
             raise ValueError(f"compression must be 'zstd', 'lz4' or None, got {compression!r}")
         self.path = Path(path)
@@ -260,7 +267,7 @@ class McapRecorder(SessionChannels):
             raise FileExistsError(f"{self.partial_path} exists: an earlier recording was interrupted; recover it "
                                   f"(mushroom-pose recover), move it, or overwrite it")
         self.partial_path.unlink(missing_ok=True)
-        super().__init__(context)  # with no whole message yet, an error discards the file
+        super().__init__(context, bed_id)  # with no whole message yet, an error discards the file
         options = MCAPWriteOptions(compression=_COMPRESSION[compression], chunk_size=chunk_size)
         try:
             self._writer = foxglove.open_mcap(self.partial_path, context=self._context, writer_options=options)
@@ -340,15 +347,16 @@ class RecordingSummary:
 def record(source: Source, path: str | os.PathLike, duration_s: float | None = None, progress: bool = True, *,
            compression: str | None = "zstd", overwrite: bool = False,
            on_frame: Callable[[int, DepthFrame], None] | None = None,
-           stop: StopRequest | None = None) -> RecordingSummary:
+           stop: StopRequest | None = None, bed_id: str | None = None) -> RecordingSummary:
     """Pull frames from ``source`` into an MCAP until it ends, ``duration_s`` (wall clock) passes, or
     ``stop`` is requested (``pipeline.signals.graceful_stop`` requests it on SIGINT/SIGTERM). The file
     is finalised in every case, also when an exception propagates. Stopping before the first frame leaves no file (an empty recording would only
     fail later, in ``calibrate`` or ``replay``) and raises ValueError, or KeyboardInterrupt for a
     signal. ``on_frame(frames_written, frame)`` runs after each frame is written. The caller owns the
-    source (opens/closes it). A full disk ends it with a RecordingError that says what was kept."""
+    source (opens/closes it). A full disk ends it with a RecordingError that says what was kept. ``bed_id``
+    names the bed the session scans."""
     start = time.monotonic()
-    recorder = McapRecorder(path, compression, overwrite=overwrite)
+    recorder = McapRecorder(path, compression, overwrite=overwrite, bed_id=bed_id)
     try:
         stopped_by = _record_into(recorder, stop or StopRequest(), source, start, duration_s, progress, on_frame)
     except RecordingError as error:

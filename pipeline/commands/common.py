@@ -229,6 +229,12 @@ DEFAULT_GRADES_HELP = "small button from 0 mm, button from 25, closed cup from 4
 """perception.grades.GradeTable's default, as ``--grades`` says it (numpy is not loaded to build a parser)."""
 
 
+def add_bed_id_flag(parser: argparse.ArgumentParser) -> None:
+    """``--bed-id ID``: which bed a recorded session scans, so that ``track`` can follow it over days."""
+    parser.add_argument("--bed-id", metavar="ID", help="the bed this session scans (recorded with it; track "
+                        "follows one bed's sessions over the days)")
+
+
 def add_grades_flag(parser: argparse.ArgumentParser) -> None:
     """``--grades FILE``: the grower's grade table (``perception.grades``), read back by ``grade_table``."""
     parser.add_argument("--grades", metavar="FILE", help="grade each cap by this table of named classes by cap "

@@ -8,8 +8,8 @@ import time
 from pathlib import Path
 
 from capture.cameras import CAMERAS
-from pipeline.commands.common import (STOP_EXIT, CliError, CommandFailed, add_grades_flag, add_model_flag,
-                                      add_overwrite_flag, add_pick_flags, add_quiet_flag, add_threads_flag,
+from pipeline.commands.common import (STOP_EXIT, CliError, CommandFailed, add_bed_id_flag, add_grades_flag,
+                                      add_model_flag, add_overwrite_flag, add_pick_flags, add_quiet_flag, add_threads_flag,
                                       add_viewer_flags, grade_table, load_model, parse_readings, parse_seed,
                                       parse_threads, pick_config, positive, refuse_to_replace, torch_threads,
                                       viewer_target, writable_file, written_files)
@@ -48,6 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rig", help="rig file from mushroom-pose calibrate (turntable or several cameras)")
     add_config_flags(parser, "fusion.cloud:FusionStage", STAGE_FLAGS, only=("window",))
     parser.add_argument("--record", help="record the session (frames, fused clouds, caps) to this .mcap")
+    add_bed_id_flag(parser)
     add_overwrite_flag(parser)
     add_viewer_flags(parser, "save the Rerun recording to this .rrd", serve_until="while the run lasts")
     parser.add_argument("--detections", help="keep the newest caps in this JSON file")
@@ -133,7 +134,7 @@ def _run_live(args: argparse.Namespace, model, rig, pick, grades, files: tuple, 
                               perception=config_from_args(PerceptionStage, args),
                               plan=pick, grades=grades, live=True)
     outputs = Outputs(record=record, viewer=viewer, name=f"live {args.camera} {time.strftime('%Y-%m-%d %H:%M:%S')}",
-                      detections=detections, quiet=args.quiet, publish_to=publish_to)
+                      detections=detections, quiet=args.quiet, publish_to=publish_to, bed_id=args.bed_id)
     with graceful_stop() as stop:
         try:
             summary = run_chain(source, model, config, outputs,

@@ -6,8 +6,8 @@ import argparse
 import sys
 
 from capture.cameras import CAMERAS
-from pipeline.commands.common import (STOP_EXIT, CliError, CommandFailed, add_overwrite_flag, add_quiet_flag,
-                                      parse_seed, positive, refuse_to_replace, writable_file)
+from pipeline.commands.common import (STOP_EXIT, CliError, CommandFailed, add_bed_id_flag, add_overwrite_flag,
+                                      add_quiet_flag, parse_seed, positive, refuse_to_replace, writable_file)
 
 NAME = "record"
 HELP = "record a depth camera session to MCAP"
@@ -18,6 +18,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the depth camera; virtual renders one turn of a synthetic bed on a turntable")
     parser.add_argument("--serial", help="which camera (serial number or OAK MxId) when several are attached")
     parser.add_argument("--out", required=True, help="the .mcap file to write")
+    add_bed_id_flag(parser)
     parser.add_argument("--duration", type=positive(float), help="seconds to record (default: until the "
                         "source ends or Ctrl-C)")
     parser.add_argument("--seed", type=parse_seed, default=0, help="virtual camera: which synthetic bed")
@@ -39,7 +40,8 @@ def run(args: argparse.Namespace) -> int:
         source = make_source(args.camera, args.serial, args.seed, args.views)
         with source, graceful_stop() as stop:
             summary = record(source, out, args.duration, progress=not args.quiet, overwrite=args.overwrite,
-                             on_frame=lambda frames, _: written.__setitem__(0, frames), stop=stop)
+                             on_frame=lambda frames, _: written.__setitem__(0, frames), stop=stop,
+                             bed_id=args.bed_id)
     except (SourceError, ValueError) as error:
         kept = (f"; the {written[0]} frames recorded so far are in {out}" if written[0]
                 else "; nothing was recorded" + (f", {out} is as it was" if out.exists() else ""))
