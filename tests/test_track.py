@@ -93,3 +93,24 @@ def test_the_ready_day_and_the_forecast_follow_the_fitted_growth():
     # day 3: 42 and 26 mm; day 4: 46 and 28; day 5: 50 and 30
     assert tracks.forecast["grades"] == {"small": [2, 1, 1], "big": [0, 1, 1]}
     assert forecast([], 2.0, GradeTable(), 2)["grades"]["button"] == [0, 0]
+
+
+def test_synth_days_writes_each_scan_and_the_history(tmp_path):
+    import subprocess
+    import sys
+
+    from perception.synthetic.dataset import scene_seeds
+
+    out = tmp_path / "days"
+    result = subprocess.run([sys.executable, "-m", "pipeline.cli", "synth", "--days", "2", "--scenes", "1",
+                             "--mushrooms", "8", "12", "--out", str(out), "--quiet"], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    seed = scene_seeds(0, 1)[0]
+    expected = bed_over_days(seed, SceneConfig(mushrooms=(8, 12)), GrowthConfig(days=2))
+    history = np.load(out / f"bed_{seed}_history.npz")
+    np.testing.assert_array_equal(history["diameters_mm"], expected.diameters_mm)
+    for scan in expected.scans:
+        saved = np.load(out / f"bed_{seed}_day_{scan.day}.npz")
+        np.testing.assert_array_equal(saved["points"], scan.points)
+        np.testing.assert_array_equal(saved["cap_ids"], scan.cap_ids)
+        np.testing.assert_allclose(saved["T_scan_bed"], scan.T_scan_bed)

@@ -142,3 +142,27 @@ def _rig_placement(rng: np.random.Generator, growth: GrowthConfig) -> np.ndarray
     T[:3, :3] = rotation.as_matrix()
     T[:3, 3] = [*rng.uniform(-growth.rig_shift_m, growth.rig_shift_m, 2), rng.uniform(-0.005, 0.005)]
     return T
+
+
+def write_history(history: BedHistory, out_dir) -> list:
+    """``bed_<seed>_day_<D>.npz`` per day (its points, true caps and ``T_scan_bed`` in the scan frame,
+    ``cap_ids``, ``time_s``) and ``bed_<seed>_history.npz`` (each cap's diameter per day, growth rate
+    and the day it was picked), each written whole; returns the paths."""
+    from pathlib import Path
+
+    from common.files import atomic_path
+
+    out_dir = Path(out_dir)
+    paths = []
+    for scan in history.scans:
+        path = out_dir / f"bed_{history.seed}_day_{scan.day}.npz"
+        with atomic_path(path, keep_suffix=True) as tmp:
+            np.savez_compressed(tmp, points=scan.points, cap_ids=scan.cap_ids, centers=scan.centers,
+                                rotations=scan.rotations, scales=scan.scales, diameters_mm=scan.diameters_mm,
+                                T_scan_bed=scan.T_scan_bed, time_s=scan.time_s, day=scan.day)
+        paths.append(path)
+    path = out_dir / f"bed_{history.seed}_history.npz"
+    with atomic_path(path, keep_suffix=True) as tmp:
+        np.savez_compressed(tmp, diameters_mm=history.diameters_mm, growth_mm_per_day=history.growth_mm_per_day,
+                            picked_on=history.picked_on, seed=history.seed)
+    return [*paths, path]

@@ -29,6 +29,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--spacing", type=parse_spacing, help=f"point spacing in metres (default {SPACING_HELP})")
     parser.add_argument("--out", required=True, help="output folder")
     add_viewer_flags(parser, "also log the beds to this Rerun recording (one per step of the frame timeline)")
+    parser.add_argument("--days", type=positive(int), help="scan each bed on N days instead, as a grower's rig "
+                        "does: caps grow at their own rates, new pins appear, ripe caps are picked, the rig is placed "
+                        "a little differently each day (bed_<seed>_day_<D>.npz per scan in its own frame, and "
+                        "bed_<seed>_history.npz with every cap's diameter per day)")
     parser.add_argument("--no-ply", action="store_true", help="write only the .npz files")
     parser.add_argument("--preview", help="also render the first bed to this PNG (shaded meshes, oblique view)")
     add_quiet_flag(parser)
@@ -58,6 +62,8 @@ def run(args: argparse.Namespace) -> int:
         seeds = scene_seeds(args.seed, args.scenes)
         config = SceneConfig(mushrooms=(low, high), visibility=args.visibility,
                              spacing=args.spacing or SceneConfig.spacing)
+    if args.days:
+        return _synth_days(args, seeds, config, out)
     refuse_to_replace([scene_path(out, index) for index in range(len(seeds))] + [viewer.rrd, preview], args.overwrite)
     mushrooms, points, started = [], [], time.perf_counter()
     with viewer_stream(viewer, f"synthetic beds in {out}") as rec:
@@ -89,4 +95,28 @@ def run(args: argparse.Namespace) -> int:
 
         render_bed_preview(seeds[0], config, preview)
         print(f"preview of the first scene: {preview}")
+    return 0
+
+
+def _synth_days(args: argparse.Namespace, seeds: list[int], config, out) -> int:
+    """``synth --days N``: each bed scanned on N days, with the truth of its caps over them."""
+    from tqdm import tqdm
+
+    from perception.synthetic.days import GrowthConfig, bed_over_days, write_history
+
+    if args.preset or args.rrd or args.spawn or args.serve or args.preview:
+        raise CliError("--days makes beds over days: give it without --preset, --rrd, --spawn, --serve or --preview")
+    names = [f"bed_{seed}_day_{day}.npz" for seed in seeds for day in range(args.days)]
+    refuse_to_replace([out / name for name in names] + [out / f"bed_{seed}_history.npz" for seed in seeds],
+                      args.overwrite)
+    growth = GrowthConfig(days=args.days)
+    caps = 0
+    for seed in tqdm(seeds, desc="beds", unit="bed", disable=args.quiet):
+        history = bed_over_days(seed, config, growth)
+        try:
+            write_history(history, out)
+        except OSError as error:
+            raise CommandFailed(f"cannot write bed {seed} into {out}: {error.strerror or error}") from None
+        caps += len(history.diameters_mm)
+    print(f"beds: {len(seeds)} scanned on {args.days} days  caps: {caps}  -> {out}")
     return 0
