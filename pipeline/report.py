@@ -76,6 +76,33 @@ def _beside_its_session(path: Path) -> bool:
     return stem != path.name and any(path.with_name(stem + suffix).is_file() for suffix in (".mcap", ".db3"))
 
 
+@dataclass(frozen=True)
+class Growth:
+    """One bed's caps over the days, as ``track`` wrote them (``track.json``)."""
+
+    name: str
+    bed_id: str
+    pick_mm: float
+    scan_days: list[float]
+    caps: list[dict]
+    forecast: dict
+
+
+def is_track_document(document) -> bool:
+    return isinstance(document, dict) and {"bed_id", "scans", "caps", "forecast"} <= document.keys()
+
+
+def read_input(path: Path, grades: GradeTable, pick: PickConfig = PickConfig()) -> "Bed | Growth":
+    """A session MCAP or a detection document as a bed, or a track document as its growth; a
+    ReportError when it is none of them."""
+    if path.suffix.lower() == ".json":
+        document = _read_json(path)
+        if is_track_document(document):
+            return Growth(path.name, str(document["bed_id"]), float(document["pick_mm"]),
+                          [float(scan["day"]) for scan in document["scans"]], document["caps"], document["forecast"])
+    return read_bed(path, grades, pick)
+
+
 def read_bed(path: Path, grades: GradeTable, pick: PickConfig = PickConfig()) -> Bed:
     """The bed of a session MCAP or a detection document; a ReportError when it is neither."""
     document, scan_world, T_world_bed = _read_input(path)
@@ -115,14 +142,18 @@ def footprint_coverage(centers: np.ndarray, radii: np.ndarray, scan: np.ndarray,
     return np.isfinite(distance).reshape(len(centers), samples).mean(1)
 
 
+def _read_json(path: Path):
+    try:
+        return json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise ReportError(f"{path} is not readable JSON: {error}") from None
+
+
 def _read_input(path: Path) -> tuple[dict, np.ndarray | None, np.ndarray | None]:
     """(the bed's detection document, the scan's points in the world frame, T_world_bed) of an input."""
     suffix = path.suffix.lower()
     if suffix == ".json":
-        try:
-            document = json.loads(path.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-            raise ReportError(f"{path} is not readable JSON: {error}") from None
+        document = _read_json(path)
         if isinstance(document, list) and document:
             document = document[-1]
         if not isinstance(document, dict) or not isinstance(document.get("mushrooms"), list):
@@ -177,9 +208,11 @@ def grade_colors(grades: GradeTable) -> dict[str, str]:
     return {**colors, UNDERSIZE: "#9a9a9a"}
 
 
-def make_report(beds: list[Bed], grades: GradeTable, title: str = "Mushroom bed report") -> Report:
+def make_report(beds: list[Bed], grades: GradeTable, title: str = "Mushroom bed report",
+                growths: list[Growth] = ()) -> Report:
     """Counts and share per grade, the diameter histogram with the grade boundaries, each bed's map
-    coloured by grade with cap ids, and a table of every cap with its flags."""
+    coloured by grade with cap ids, a table of every cap with its flags; for each tracked bed its caps'
+    growth curves, a timeline of when each reaches the pick size and the count per grade to come."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -189,10 +222,11 @@ def make_report(beds: list[Bed], grades: GradeTable, title: str = "Mushroom bed 
     total = sum(counts.values())
     maps = [_png(_bed_map(bed, grades, colors)) for bed in beds]
     parts = [f"<h1>{html.escape(title)}</h1>",
-             f"<p>{len(beds)} bed{'s' if len(beds) != 1 else ''}, {total} caps. Grades by cap diameter: "
+             f"<p>{len(beds)} bed{'s' if len(beds) != 1 else ''}, {total} caps"
+             + (f", {len(growths)} tracked over days" if growths else "") + ". Grades by cap diameter: "
              + ", ".join(f"{html.escape(g.name)} from {g.from_mm:g} mm" for g in grades.grades) + ".</p>",
-             "<h2>Caps per grade</h2>", _grade_table(names, counts, total, colors),
-             _img(_png(_histogram(beds, grades, colors)), "diameters with the grade boundaries")]
+             *(["<h2>Caps per grade</h2>", _grade_table(names, counts, total, colors),
+                _img(_png(_histogram(beds, grades, colors)), "diameters with the grade boundaries")] if beds else [])]
     for bed, png in zip(beds, maps):
         flagged = int((bed.uncertain | bed.partial).sum())
         in_order = sum(place is not None for place in bed.pick_order)
@@ -202,6 +236,8 @@ def make_report(beds: list[Bed], grades: GradeTable, title: str = "Mushroom bed 
                   f"<p>{len(bed.ids)} caps ({per_grade or 'none'}); {in_order} in the pick order; {flagged} "
                   "flagged (uncertain or partial).</p>",
                   _img(png, f"map of {bed.name}"), _cap_table(bed, colors)]
+    for growth in growths:
+        parts += _growth_section(growth, grades, colors)
     return Report(_page(title, "\n".join(parts)), maps)
 
 
@@ -285,6 +321,73 @@ def _bed_map(bed: Bed, grades: GradeTable, colors: dict[str, str]):
     handles += [Patch(facecolor="white", edgecolor="black", linestyle="--", label="uncertain"),
                 Patch(facecolor="white", edgecolor="black", hatch="///", label="partial")]
     axes.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1), frameon=False, fontsize=8)
+    return figure
+
+
+def _growth_section(growth: Growth, grades: GradeTable, colors: dict[str, str]) -> list[str]:
+    """A tracked bed: growth curves, the ready timeline and the forecast count per grade."""
+    present = [cap for cap in growth.caps if cap["present"]]
+    last = growth.scan_days[-1]
+    coming = sorted((cap["ready_day"], cap["id"]) for cap in present
+                    if cap["ready_day"] is not None and cap["seen"][-1]["diameter_mm"] < growth.pick_mm)
+    days = growth.forecast["days"]
+    header = "<tr><th>grade</th>" + "".join(f"<th>day {day:g}</th>" for day in days) + "</tr>"
+    rows = "".join(f'<tr><td><span class="swatch" style="background:{colors.get(name, "#9a9a9a")}"></span>'
+                   f"{html.escape(name)}</td>" + "".join(f"<td>{count}</td>" for count in counts) + "</tr>"
+                   for name, counts in growth.forecast["grades"].items())
+    return [f"<h2>Growth of bed {html.escape(growth.bed_id)} ({html.escape(growth.name)})</h2>",
+            f"<p>{len(growth.scan_days)} scans over {last:.1f} days, {len(growth.caps)} caps followed, "
+            f"{len(present)} on the last scan; {len(coming)} not yet {growth.pick_mm:g} mm are forecast to "
+            "reach it.</p>",
+            _img(_png(_growth_curves(growth, grades, colors)), f"growth of bed {growth.bed_id}"),
+            _img(_png(_ready_timeline(growth, coming)), f"when the caps of bed {growth.bed_id} are ready"),
+            "<h3>Caps per grade, days ahead</h3>", f"<table>{header}{rows}</table>"]
+
+
+def _growth_curves(growth: Growth, grades: GradeTable, colors: dict[str, str]):
+    """Each cap's diameter over the scans, coloured by its last grade, its line carried on to the pick
+    size for those still growing toward it."""
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(figsize=(8, 4))
+    last = growth.scan_days[-1]
+    for cap in growth.caps:
+        days = [seen["day"] for seen in cap["seen"]]
+        diameters = [seen["diameter_mm"] for seen in cap["seen"]]
+        color = colors.get(grades.grade_of([diameters[-1]])[0], "#9a9a9a")
+        axes.plot(days, diameters, marker="o", markersize=3, linewidth=1.2, color=color,
+                  alpha=1.0 if cap["present"] else 0.45)
+        ready = cap["ready_day"]
+        if cap["present"] and ready is not None and diameters[-1] < growth.pick_mm and ready > days[-1]:
+            axes.plot([days[-1], ready], [diameters[-1], growth.pick_mm], linestyle=":", linewidth=1, color=color)
+    axes.axhline(growth.pick_mm, color="#444444", linestyle="--", linewidth=0.8)
+    axes.annotate(f"pick size {growth.pick_mm:g} mm", (0, growth.pick_mm), xytext=(2, 3), textcoords="offset points",
+                  fontsize=8, color="#444444")
+    axes.axvline(last, color="#888888", linewidth=0.8)
+    axes.set_xlabel("day (since the first scan)")
+    axes.set_ylabel("cap diameter (mm)")
+    axes.spines[["top", "right"]].set_visible(False)
+    return figure
+
+
+def _ready_timeline(growth: Growth, coming: list[tuple[float, int]]):
+    """The day each cap on the last scan that is still under the pick size is forecast to reach it."""
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(figsize=(8, max(1.6, 0.22 * len(coming) + 0.8)))
+    if coming:
+        ready, ids = zip(*coming)
+        rows = np.arange(len(coming))
+        axes.scatter(ready, rows, s=18, color="#2a7d4f")
+        axes.set_yticks(rows, [f"#{cap}" for cap in ids], fontsize=7)
+        axes.invert_yaxis()
+    else:
+        axes.set_yticks([])
+        axes.text(0.5, 0.5, "no cap is forecast to reach the pick size", ha="center", va="center",
+                  transform=axes.transAxes, fontsize=9)
+    axes.axvline(growth.scan_days[-1], color="#888888", linewidth=0.8)
+    axes.set_xlabel(f"day it reaches {growth.pick_mm:g} mm (the grey line: the last scan)")
+    axes.spines[["top", "right"]].set_visible(False)
     return figure
 
 

@@ -87,3 +87,20 @@ def test_sessions_of_another_bed_or_one_moment_twice_are_refused(tmp_path, sessi
     for out in ("a", "b", "c"):
         assert not (tmp_path / out / "track.json").exists()
     assert len(result.stderr.strip().splitlines()) == 1 and "Traceback" not in result.stderr
+
+
+def test_the_report_of_a_track_shows_growth_the_ready_caps_and_the_grades_to_come(tmp_path, sessions):
+    import re
+
+    _, paths = sessions
+    out = tmp_path / "out"
+    assert run(*paths, "--bed", "bay 1", "--out", out).returncode == 0
+    document = json.loads((out / "track.json").read_text())
+    report = tmp_path / "report.html"
+    result = subprocess.run([sys.executable, "-m", "pipeline.cli", "report", str(out / "track.json"), "--out",
+                             str(report)], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    page = report.read_text()
+    assert "Growth of bed bay 1" in page and len(re.findall(r'src="data:image/png;base64,', page)) == 2
+    for name, counts in document["forecast"]["grades"].items():
+        assert re.search(rf"{re.escape(name)}</td>" + "".join(f"<td>{count}</td>" for count in counts), page)

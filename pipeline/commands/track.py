@@ -49,10 +49,15 @@ def run(args: argparse.Namespace) -> int:
     write_track_rrd(out / "track.rrd", scans, tracks)
     write_atomically(out / "track.json", json.dumps(document, indent=1))
     present = [cap for cap in document["caps"] if cap["present"]]
-    ready = sorted((cap["ready_day"], cap["id"]) for cap in present if cap["ready_day"] is not None)
+    ripe = [cap["id"] for cap in present if cap["seen"][-1]["diameter_mm"] >= args.pick_mm]
+    coming = sorted((cap["ready_day"], cap["id"]) for cap in present
+                    if cap["id"] not in ripe and cap["ready_day"] is not None)
     print(f"bed {args.bed}: {len(scans)} scans over {document['scans'][-1]['day']:.1f} days, {len(document['caps'])} "
-          f"caps followed, {len(present)} on the last scan")
-    for day, cap in ready[:10]:
-        print(f"  cap {cap}: {args.pick_mm:g} mm on day {day:.1f}")
+          f"caps followed, {len(present)} on the last scan, {len(ripe)} of them at {args.pick_mm:g} mm or more"
+          + (f" (caps {', '.join(map(str, ripe))})" if ripe else ""))
+    for day, cap in coming[:10]:
+        print(f"  cap {cap} reaches {args.pick_mm:g} mm on day {day:.1f}")
+    if len(coming) > 10:
+        print(f"  ... and {len(coming) - 10} more (track.json)")
     print(f"track: {out / 'track.json'}  rerun: {out / 'track.rrd'}")
     return 0
