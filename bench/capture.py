@@ -19,6 +19,7 @@ import numpy as np  # noqa: E402
 from capture.mcap.reader import McapSource  # noqa: E402
 from capture.mcap.writer import McapRecorder  # noqa: E402
 from capture.virtual import sense_view  # noqa: E402
+from capture.virtual import VirtualCameraConfig  # noqa: E402
 from pipeline.sources import VirtualBed, virtual_bed_source  # noqa: E402
 from pipeline.process import reuse_freed_memory  # noqa: E402
 
@@ -29,7 +30,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
     reuse_freed_memory()
-    source, _ = virtual_bed_source(VirtualBed(views=args.frames))
+    source, _ = virtual_bed_source(VirtualBed(camera=VirtualCameraConfig(views=args.frames)))
     frames, render_s = [], []
     with source:
         while True:

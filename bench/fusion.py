@@ -27,6 +27,7 @@ from fusion.cloud import FusionConfig, fuse  # noqa: E402
 from fusion.registration import (RegistrationConfig, fpfh, pose_change, prepare_view, register_global,  # noqa: E402
                                  register_pair)
 from fusion.turntable import Rig  # noqa: E402
+from capture.virtual import VirtualCameraConfig  # noqa: E402
 from pipeline.sources import VirtualBed, virtual_bed_source  # noqa: E402
 from pipeline.process import reuse_freed_memory  # noqa: E402
 
@@ -38,7 +39,7 @@ SUCCESS_DEG, SUCCESS_M = 1.0, 0.005
 def session(seed: int, views: int):
     """Frames of one bed, their true poses, the frames as a blind recording (perturbed encoder angles,
     no poses) and the rig with a shifted axis."""
-    source, bed = virtual_bed_source(VirtualBed(seed=seed, views=views))
+    source, bed = virtual_bed_source(VirtualBed(seed=seed, camera=VirtualCameraConfig(views=views)))
     turntable = source.config.turntable
     frames = list(source)
     rng = np.random.default_rng(1000 + seed)

@@ -117,7 +117,8 @@ def main() -> None:
     for bed in tqdm(range(args.beds), desc="beds", unit="bed"):
         history = bed_over_days(args.seed + bed, growth=growth)
         found = [detect_scan(model, scan.points.astype(np.float64), args.readings) for scan in history.scans]
-        scans = [Scan(s.time_s, s.points.astype(np.float64), caps, f"day {s.day}") for s, caps in zip(history.scans, found)]
+        scans = [Scan(s.time_s, s.points.astype(np.float64), caps, f"day {s.day}")
+                 for s, caps in zip(history.scans, found)]
         labels = [truth_of(caps, scan) for caps, scan in zip(found, history.scans)]
         tracks = track_bed(scans, config=config)
         for name, (hits, trials) in identity_counts(history, tracks, labels).items():
@@ -143,7 +144,8 @@ def main() -> None:
             if len(track.scans) == 2:
                 repeat.append(abs(track.diameters_mm[1] - track.diameters_mm[0]))
     share = {name: hits / trials if trials else float("nan") for name, (hits, trials) in totals.items()}
-    print(f"{args.beds} beds x {args.days} daily scans, read {args.readings} times ({time.perf_counter() - started:.0f} s)")
+    print(f"{args.beds} beds x {args.days} daily scans, read {args.readings} times "
+          f"({time.perf_counter() - started:.0f} s)")
     print(f"  identity: kept {share['kept']:.1%} of {totals['kept'][1]} (target >= 98 %); wrong links "
           f"{share['wrong']:.1%} of {totals['wrong'][1]} (target < 2 %); appearing caps recognised "
           f"{share['appeared']:.1%} of {totals['appeared'][1]}, picked {share['picked']:.1%} of "

@@ -33,6 +33,7 @@ from perception.cap import tilt_deg  # noqa: E402
 from perception.weights import DEFAULT_WEIGHTS  # noqa: E402
 from perception.weights import load_weights  # noqa: E402
 from pipeline.runner import RunConfig, Runner  # noqa: E402
+from capture.virtual import VirtualCameraConfig  # noqa: E402
 from pipeline.sources import VirtualBed, virtual_bed_source  # noqa: E402
 
 ON_SURFACE, LABELLED_POINTS = 0.002, 250
@@ -83,7 +84,7 @@ def main() -> None:
     radius_errors: dict[str, list[float]] = {key: [] for key in ("footprint", "detector", "detector_footprint")}
     tilts: dict[str, list[float]] = {"footprint": [], "detector_footprint": []}
     for seed in range(args.beds):
-        source, bed = virtual_bed_source(VirtualBed(seed=100 + seed, views=18))
+        source, bed = virtual_bed_source(VirtualBed(seed=100 + seed, camera=VirtualCameraConfig(views=18)))
         summary = Runner(source, model, RunConfig(), []).run()
         fused, caps = summary.last_unit.cloud, summary.last_detection.result.caps
         world = fused.world_points

@@ -39,6 +39,7 @@ from capture.source import Source  # noqa: E402
 from perception.detect import LIVE_READINGS, detect_points  # noqa: E402
 from perception.weights import DEFAULT_WEIGHTS  # noqa: E402
 from perception.weights import load_weights  # noqa: E402
+from capture.virtual import VirtualCameraConfig  # noqa: E402
 from pipeline.sources import VirtualBed, virtual_bed_source  # noqa: E402
 
 FPS = 15.0
@@ -47,7 +48,8 @@ VIEWS = 18
 
 def turn_frames(seed: int, start_ns: int):
     """One 18-view turn over bed ``seed``, its clock starting at ``start_ns``."""
-    source, _ = virtual_bed_source(VirtualBed(seed=seed, views=VIEWS, fps=FPS, start_ns=start_ns))
+    camera = VirtualCameraConfig(views=VIEWS, fps=FPS, start_ns=start_ns)
+    source, _ = virtual_bed_source(VirtualBed(seed=seed, camera=camera))
     with source:
         return list(source)
 

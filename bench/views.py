@@ -32,6 +32,7 @@ from perception.evaluate import evaluate  # noqa: E402
 from perception.weights import load_weights  # noqa: E402
 from pipeline.process import reuse_freed_memory  # noqa: E402
 from pipeline.runner import PerceptionStage, RunConfig, Runner  # noqa: E402
+from capture.virtual import VirtualCameraConfig  # noqa: E402
 from pipeline.sources import VirtualBed, virtual_bed_source  # noqa: E402
 
 MIN_CAP_POINTS, ON_SURFACE = 5, 0.002
@@ -86,7 +87,7 @@ def main() -> None:
     points = {name: [] for name in SETTINGS}
     all_caps = 0
     for seed in range(args.beds):
-        source, bed = virtual_bed_source(VirtualBed(seed=100 + seed, views=18))
+        source, bed = virtual_bed_source(VirtualBed(seed=100 + seed, camera=VirtualCameraConfig(views=18)))
         all_caps += len(bed.centers)
         frames = list(source)
         for name, indices in SETTINGS.items():

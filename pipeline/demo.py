@@ -55,11 +55,13 @@ def _run(folder: Path, model, seed: int, views: int, rrd: bool, viewer, progress
     from fusion.cloud import FusionStage
     from pipeline.runner import RunConfig
     from pipeline.chain import Outputs, run_chain
+    from capture.virtual import VirtualCameraConfig
     from pipeline.sources import VirtualBed, virtual_bed_source
     from pipeline.viewer import ViewerTarget
 
     start = time.perf_counter()
-    source, bed = virtual_bed_source(VirtualBed(seed=seed, views=views, start_ns=time.time_ns()))
+    camera = VirtualCameraConfig(views=views, start_ns=time.time_ns())
+    source, bed = virtual_bed_source(VirtualBed(seed=seed, camera=camera))
     scene_s = time.perf_counter() - start
     config = RunConfig(fusion=FusionStage(FusionConfig(angles="encoder"), Rig(source.turntable)))
     viewer = replace(viewer or ViewerTarget(), rrd=folder / "demo.rrd" if rrd else None)

@@ -77,8 +77,8 @@ def recording_source(recording: Recording):
     from pipeline.sources import VirtualBed, virtual_bed_source
 
     if recording.views:
-        setup = VirtualBed(seed=recording.seed, views=recording.views, start_ns=START_NS,
-                           mushrooms=recording.mushrooms)
+        camera = VirtualCameraConfig(views=recording.views, start_ns=START_NS)
+        setup = VirtualBed(seed=recording.seed, mushrooms=recording.mushrooms, camera=camera)
         return virtual_bed_source(setup)[0], 1
     config = SceneConfig(mushrooms=recording.mushrooms) if recording.mushrooms else SceneConfig()
     bed = build_bed(np.random.default_rng(recording.seed), config)

@@ -2,33 +2,34 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from capture.cameras import camera_kind
 from capture.source import Source
 
+if TYPE_CHECKING:
+    from capture.virtual import VirtualCameraConfig
+
 
 @dataclass(frozen=True)
 class VirtualBed:
-    """A synthetic bed under a virtual D405 on a turntable: the default scene of demo, record and tests."""
+    """A synthetic bed under a virtual camera circling it on a turntable: the default scene of demo,
+    record, live and tests. The camera's own settings (views per turn, frame rate, the first frame's
+    time, turns) are its ``camera``'s; the rig places it from ``radius`` and ``height``."""
 
     seed: int = 0
-    """The virtual camera's bed: the synthetic generator's seed."""
-    views: int = 18
-    """Virtual camera: views per turn of the turntable."""
+    """Virtual camera: the synthetic bed's seed (the bed, and the camera's noise)."""
+    mushrooms: tuple[int, int] | None = None
+    """Caps on the bed, inclusive range (default: the generator's)."""
     radius: float = 0.22
     """Camera distance from the turntable axis, metres."""
     height: float = 0.42
     """Camera height above the bed, metres."""
-    fps: float = 15.0
-    start_ns: int = 0
-    """Capture time of the first frame (live runs give the wall clock)."""
-    mushrooms: tuple[int, int] | None = None
-    """Caps on the bed, inclusive range (default: the generator's)."""
-    turns: int | None = 1
-    """Turns to render (None: it keeps turning)."""
+    camera: VirtualCameraConfig | None = None
+    """The virtual camera (default: a D405 at 15 fps, 18 views, one turn)."""
 
 
 def virtual_bed_source(setup: VirtualBed = VirtualBed(), sensor_id: str = "virtual"):
@@ -38,9 +39,9 @@ def virtual_bed_source(setup: VirtualBed = VirtualBed(), sensor_id: str = "virtu
 
     bed = build_bed(np.random.default_rng(setup.seed),
                     SceneConfig(mushrooms=setup.mushrooms) if setup.mushrooms else SceneConfig())
-    config = VirtualCameraConfig(turntable=circle_turntable(np.zeros(3), setup.radius, setup.height), views=setup.views,
-                                 fps=setup.fps, seed=setup.seed, sensor_id=sensor_id, start_ns=setup.start_ns,
-                                 turns=setup.turns)
+    camera = setup.camera if setup.camera is not None else VirtualCameraConfig()  # its len() is 0 before the turntable is set: not `or`
+    config = replace(camera, seed=setup.seed, sensor_id=sensor_id,
+                     turntable=circle_turntable(np.zeros(3), setup.radius, setup.height))
     return VirtualSource(bed.vertices, bed.triangles, config), bed
 
 
@@ -55,8 +56,10 @@ def make_source(camera: str, serial: str | None = None, seed: int = 0, views: in
         import time
 
         from capture.source import Paced
+        from capture.virtual import VirtualCameraConfig
 
-        setup = VirtualBed(seed=seed, views=views, start_ns=time.time_ns() if live else 0, turns=None if live else 1)
+        virtual = VirtualCameraConfig(views=views, start_ns=time.time_ns() if live else 0, turns=None if live else 1)
+        setup = VirtualBed(seed=seed, camera=virtual)
         source = virtual_bed_source(setup)[0]
         return Paced(source) if live else source
     kind = camera_kind(camera)

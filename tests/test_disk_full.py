@@ -34,9 +34,10 @@ def small_disk(tmp_path):
 
 def bed_frames(count: int) -> list:
     """``count`` depth frames of one synthetic bed, from the virtual camera."""
+    from capture.virtual import VirtualCameraConfig
     from pipeline.sources import VirtualBed, virtual_bed_source
 
-    return list(virtual_bed_source(VirtualBed(seed=3, views=count))[0])
+    return list(virtual_bed_source(VirtualBed(seed=3, camera=VirtualCameraConfig(views=count)))[0])
 
 
 def cli(*args, timeout: float = 180) -> subprocess.CompletedProcess:

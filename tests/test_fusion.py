@@ -33,7 +33,7 @@ def one_line_error(excinfo) -> str:
 @pytest.fixture(scope="module")
 def session():
     """Six views of a synthetic bed, the truth, and a prior off by up to 3 deg in angle and 5 mm in axis."""
-    _, bed = virtual_bed_source(VirtualBed(views=VIEWS))
+    _, bed = virtual_bed_source(VirtualBed(camera=VirtualCameraConfig(views=VIEWS)))
     turntable = circle_turntable(np.zeros(3), 0.22, 0.42)
     config = VirtualCameraConfig(intrinsics=SMALL, turntable=turntable, views=VIEWS, seed=0)
     frames = list(VirtualSource(bed.vertices, bed.triangles, config))
@@ -363,7 +363,7 @@ def test_streaming_and_batch_fusion_give_the_same_surface(session, streamed):
 def test_a_turn_ends_where_it_should_when_frames_were_dropped():
     """Frames 10-13 and 20 of three 12-view turns never reach fusion (a live camera ahead of it): the
     first turn ends before frame 14, a turn past frame 0; the second is frames 14-25 without 20."""
-    source, _ = virtual_bed_source(VirtualBed(seed=0, views=12, turns=3))
+    source, _ = virtual_bed_source(VirtualBed(seed=0, camera=VirtualCameraConfig(views=12, turns=3)))
     with source:
         frames = [f for k, f in enumerate(source) if k not in (10, 11, 12, 13, 20)]
     fuser = Fuser(FusionConfig(refine=False))

@@ -136,10 +136,11 @@ def test_the_runner_reads_as_many_times_as_its_perception_stage_says():
     from perception.weights import DEFAULT_WEIGHTS
     from perception.weights import load_weights
     from pipeline.runner import PerceptionStage, RunConfig, Runner
+    from capture.virtual import VirtualCameraConfig
     from pipeline.sources import VirtualBed, virtual_bed_source
 
     shipped = load_weights(DEFAULT_WEIGHTS)[0]
-    frames, _ = virtual_bed_source(VirtualBed(seed=5, views=2))
+    frames, _ = virtual_bed_source(VirtualBed(seed=5, camera=VirtualCameraConfig(views=2)))
     frames = list(frames)
 
     class Frames(Source):

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from capture.mcap.reader import McapSource
+from capture.virtual import VirtualCameraConfig
 from pipeline.sources import VirtualBed, virtual_bed_source
 from test_detect_cli import one_line_error, run
 
@@ -17,7 +18,7 @@ def test_record_virtual_round_trips_bit_exact(tmp_path):
     result = run("record", "--camera", "virtual", "--views", "3", "--seed", "2", "--out", out, "--quiet")
     assert result.returncode == 0, result.stderr
     assert "recorded 3 frames" in result.stdout
-    expected = list(virtual_bed_source(VirtualBed(seed=2, views=3))[0])
+    expected = list(virtual_bed_source(VirtualBed(seed=2, camera=VirtualCameraConfig(views=3)))[0])
     with McapSource(out) as replay:
         got = list(replay)
     assert len(got) == len(expected) == 3
@@ -59,7 +60,7 @@ class UnpluggedAfter:
 def test_unplugged_camera_keeps_the_recording_and_says_so(tmp_path, monkeypatch):
     import pipeline.sources
 
-    frames = list(virtual_bed_source(VirtualBed(seed=1, views=3))[0])
+    frames = list(virtual_bed_source(VirtualBed(seed=1, camera=VirtualCameraConfig(views=3)))[0])
     monkeypatch.setattr(pipeline.sources, "make_source", lambda *a, **k: UnpluggedAfter(frames))
     out = tmp_path / "cut.mcap"
     one_line_error(run("record", "--camera", "realsense", "--out", out, "--quiet"), "unplugged")
@@ -87,7 +88,7 @@ def test_a_recording_that_fails_inside_its_first_frame_keeps_the_old_file(tmp_pa
 
     import pipeline.sources
 
-    frame = next(iter(virtual_bed_source(VirtualBed(seed=1, views=1))[0]))
+    frame = next(iter(virtual_bed_source(VirtualBed(seed=1, camera=VirtualCameraConfig(views=1)))[0]))
     broken = dataclasses.replace(frame, T_world_camera=np.full((4, 4), np.nan))
     monkeypatch.setattr(pipeline.sources, "make_source", lambda *a, **k: UnpluggedAfter([broken]))
     out = tmp_path / "old.mcap"
@@ -114,7 +115,7 @@ def test_a_recording_of_no_frames_is_an_error_and_keeps_the_old_file(tmp_path, m
     import pipeline.sources
 
     if source_frames is None:
-        source_frames = list(virtual_bed_source(VirtualBed(seed=1, views=1))[0])
+        source_frames = list(virtual_bed_source(VirtualBed(seed=1, camera=VirtualCameraConfig(views=1)))[0])
     monkeypatch.setattr(pipeline.sources, "make_source", lambda *a, **k: EndsAfter(source_frames))
     out = tmp_path / "old.mcap"
     out.write_bytes(b"an earlier session")

@@ -24,7 +24,8 @@ RUN_FLAGS = {"max_units": {"name": "turns", "parse": positive(int), "metavar": "
 """RunConfig's flags: names and validators where the field's own are not enough."""
 STAGE_FLAGS = {"window": {"parse": positive(int), "metavar": "N"}}
 PERCEPTION_FLAGS = {"readings": {"parse": parse_readings, "metavar": "N"}}
-BED_FLAGS = {"seed": {"parse": parse_seed}, "views": {"parse": positive(int)}}
+BED_FLAGS = {"seed": {"parse": parse_seed}}
+CAMERA_FLAGS = {"views": {"parse": positive(int), "help": "Virtual camera: views per turn of the turntable."}}
 FOXGLOVE_ADDRESS = "127.0.0.1:8765"
 """Where Foxglove looks for a live robot by default."""
 
@@ -59,6 +60,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"by default at {FOXGLOVE_ADDRESS} (port 0: any free port)")
     add_config_flags(parser, "pipeline.runner:RunConfig", RUN_FLAGS, only=tuple(RUN_FLAGS))
     add_config_flags(parser, "pipeline.sources:VirtualBed", BED_FLAGS, only=tuple(BED_FLAGS))
+    add_config_flags(parser, "capture.virtual:VirtualCameraConfig", CAMERA_FLAGS, only=tuple(CAMERA_FLAGS))
     add_model_flag(parser)
     add_config_flags(parser, "pipeline.runner:PerceptionStage", PERCEPTION_FLAGS)
     add_grades_flag(parser)
