@@ -33,6 +33,21 @@ class SensorModel:
     """Fraction of random pixels lost."""
     min_depth: float = 0.07
     max_depth: float = 1.5
+    speckle_at_1m: float = 0.0
+    """Standard deviation in metres at 1 m of range error correlated over ``speckle_pixels`` (a stereo
+    matcher's texture-dependent blotches); 0 draws none."""
+    speckle_pixels: float = 4.0
+    flying_pixels: float = 0.0
+    """Share of the far-side pixels at a depth step that take a depth between the two sides (mixed
+    pixels flying off edges) instead of dropping out; 0 draws none."""
+
+
+SENSOR_MODELS = {
+    "d405": SensorModel(),
+    "oak": SensorModel(noise_at_1m=0.015, dropout=0.01, speckle_at_1m=0.008, flying_pixels=0.5),
+}
+"""Named sensor models: the D405-class active stereo at bed range, and a noisier passive-stereo
+OAK-class camera (more range noise, speckle, flying pixels at edges)."""
 
 
 @dataclass(frozen=True)
@@ -115,10 +130,23 @@ def apply_sensor_model(render: Render, sensor: SensorModel, rng: np.random.Gener
     np.minimum(nearest_neighbour[:, :-1], hits[:, 1:], out=nearest_neighbour[:, :-1])
     np.minimum(nearest_neighbour[1:], hits[:-1], out=nearest_neighbour[1:])
     np.minimum(nearest_neighbour[:-1], hits[1:], out=nearest_neighbour[:-1])
-    valid &= ~(depth - nearest_neighbour > sensor.edge_jump)
+    behind_edge = depth - nearest_neighbour > sensor.edge_jump
+    if sensor.flying_pixels > 0:  # drawn only when asked, so other sensors keep their frames
+        flying = behind_edge & (rng.random(depth.shape, dtype=np.float32) < sensor.flying_pixels)
+        mix = rng.random(int(flying.sum()), dtype=np.float32)
+        depth = depth.copy()
+        depth[flying] = nearest_neighbour[flying] + mix * (depth[flying] - nearest_neighbour[flying])
+        behind_edge &= ~flying
+    valid &= ~behind_edge
     if gaussian is None:
         gaussian = rng.standard_normal(depth.shape, dtype=np.float32)
     noisy = depth + gaussian * np.float32(sensor.noise_at_1m) * depth**2
+    if sensor.speckle_at_1m > 0:
+        from scipy.ndimage import gaussian_filter
+
+        field = gaussian_filter(rng.standard_normal(depth.shape, dtype=np.float32), sensor.speckle_pixels)
+        field /= max(float(field.std()), 1e-9)
+        noisy = noisy + field * np.float32(sensor.speckle_at_1m) * depth**2
     quantised = np.round(noisy / np.float32(sensor.depth_scale)) * np.float32(sensor.depth_scale)
     return np.where(valid, quantised, np.float32(0.0))
 

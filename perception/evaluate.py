@@ -268,6 +268,16 @@ def evaluate(preds: list[Caps], gts: list[Caps],
     )
 
 
+def detection_outcomes(preds: list[Caps], gts: list[Caps], threshold: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+    """Every detection's score and whether it matches a true cap at IoU >= ``threshold`` (greedy by
+    score over the pooled scenes, as AP matches): what precision, recall and calibration are read from."""
+    ious = [iou_matrix(p, g) for p, g in zip(preds, gts)]
+    scene_of = np.concatenate([np.full(len(p), k) for k, p in enumerate(preds)] + [np.zeros(0, int)])
+    index_of = np.concatenate([np.arange(len(p)) for p in preds] + [np.zeros(0, int)])
+    scores = np.concatenate([p.score_array() for p in preds] + [np.zeros(0)])
+    return scores, _match(np.argsort(-scores, kind="stable"), scene_of, index_of, ious, threshold) >= 0
+
+
 # ---- the detector on synthetic scenes
 
 def evaluate_on_scenes(model: MushroomNet, scenes, methods=("meanshift", "dbscan"), height: str = "free",

@@ -89,6 +89,9 @@ class SceneConfig:
     (``terrain.soil_bank_heights``), so that soil and cap meet in one slope, as young caps stand on a
     real bed. 0 0 draws nothing."""
     ground_cell: float = 0.004
+    bed_tilt_deg: float = 0.0
+    """The whole bed (soil, caps and camera) tilted by up to this many degrees about a random horizontal
+    axis, as a bed on an uneven shelf or a rig not square to it is seen; 0 draws no tilt."""
     sensor: SensorModel = field(default_factory=SensorModel)
 
     def __post_init__(self) -> None:
@@ -494,9 +497,23 @@ def generate_scene(seed: int, config: SceneConfig = SceneConfig()) -> SyntheticS
     points, triangle = points[keep], triangle[keep]
     instance = bed.triangle_instance[triangle]
     is_cap = bed.triangle_is_cap[triangle]
-    targets = encode(points, instance, is_cap, bed.centers, bed.rotations, bed.scales)
+    centers, rotations = bed.centers, bed.rotations
+    if config.bed_tilt_deg > 0:  # drawn only when asked, so other configs keep their beds
+        tilt = _bed_tilt(rng, config.bed_tilt_deg)
+        points, centers, eye = points @ tilt.T, centers @ tilt.T, tilt @ eye
+        rotations = tilt @ rotations
+    targets = encode(points, instance, is_cap, centers, rotations, bed.scales)
     k = len(bed.centers)
     visible = np.bincount(instance[is_cap], minlength=k)[:k] if k else np.zeros(0, np.int64)
-    return SyntheticScene(points.astype(np.float32), is_cap, instance, bed.centers, bed.rotations, bed.scales,
+    return SyntheticScene(points.astype(np.float32), is_cap, instance, centers, rotations, bed.scales,
                           targets.existence, targets.residual, targets.orientation, visible, eye, int(seed),
                           bed.terrain, config.visibility, float(spacing))
+
+
+def _bed_tilt(rng: np.random.Generator, max_deg: float) -> np.ndarray:
+    """A rotation by half to all of ``max_deg`` about a random horizontal axis."""
+    heading = rng.uniform(0, 2 * np.pi)
+    axis = np.array([np.cos(heading), np.sin(heading), 0.0])
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(axis * np.radians(rng.uniform(0.5, 1.0) * max_deg)).as_matrix()

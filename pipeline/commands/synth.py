@@ -18,6 +18,10 @@ HELP = "generate synthetic mushroom beds with ground truth"
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", choices=["val50", "test50"], help="a fixed evaluation set: 50 beds of 5-45 caps "
                         "each, val50 and test50 from different seeds (--spacing: the same beds at another spacing)")
+    parser.add_argument("--family", help="beds of one family of the robustness suite (bench/robustness.py): "
+                        "shallow-domes, real-domes, flats, large-brown, dense-pins, spacing-1mm, spacing-5mm, "
+                        "spacing-8mm, single-view, fused-views, oak-stereo, tilted-uneven, touching-clusters, "
+                        "casing-soil (--spacing overrides its spacing)")
     parser.add_argument("--scenes", type=positive(int), default=10, help="number of scenes (default 10)")
     parser.add_argument("--seed", type=parse_seed, default=0, help="base seed (default 0)")
     parser.add_argument("--mushrooms", type=parse_mushroom_count, nargs=2, default=(5, 45), metavar=("LOW", "HIGH"),
@@ -53,8 +57,18 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"--mushrooms range is inverted: {low} > {high}")
     preview = writable_file(args.preview, suffix=".png")
     viewer = viewer_target(args)
-    out = writable_dir(args.out)
-    if args.preset:
+    if args.family:
+        from dataclasses import replace
+
+        from perception.synthetic.families import FAMILIES
+
+        if args.preset or args.family not in FAMILIES:
+            raise CliError("--family and --preset are two kinds of beds: give one" if args.preset else
+                           f"unknown bed family {args.family!r}; choose one of {', '.join(FAMILIES)}")
+        seeds = scene_seeds(args.seed, args.scenes)
+        config = FAMILIES[args.family].config
+        config = replace(config, spacing=args.spacing) if args.spacing else config
+    elif args.preset:
         preset = BED_SETS[args.preset]
         seeds = scene_seeds(preset.seed, preset.scenes)
         config = preset_config(args.preset, args.visibility, args.spacing)
@@ -62,6 +76,7 @@ def run(args: argparse.Namespace) -> int:
         seeds = scene_seeds(args.seed, args.scenes)
         config = SceneConfig(mushrooms=(low, high), visibility=args.visibility,
                              spacing=args.spacing or SceneConfig.spacing)
+    out = writable_dir(args.out)
     if args.days:
         return _synth_days(args, seeds, config, out)
     refuse_to_replace([scene_path(out, index) for index in range(len(seeds))] + [viewer.rrd, preview], args.overwrite)
