@@ -157,19 +157,21 @@ class Caps:
         return replace(self, centers=transform_points(T_frame_caps, self.centers),
                        rotations=T_frame_caps[:3, :3] @ self.rotations)
 
-    def to_document(self, frame: str, readings: int, grades: GradeTable = GradeTable()) -> dict:
-        """The detection document: ``{"frame", "units": "m", "readings", "grades", "mushrooms": [one entry
-        per cap]}``; ``readings`` says how many turned readings of the cloud the caps come from
-        (perception.detect), ``grades`` is the table each cap's ``grade`` comes from."""
+    def to_document(self, frame: str, readings: int, grades: GradeTable = GradeTable(), min_score: float = 0.0) -> dict:
+        """The detection document: ``{"frame", "units": "m", "readings", "grades", "min_score", "mushrooms":
+        [one entry per cap]}``; ``readings`` says how many turned readings of the cloud the caps come from
+        (perception.detect), ``grades`` is the table each cap's ``grade`` comes from, and a cap scored
+        under ``min_score`` is ``"uncertain": true``."""
         scores, members = self.score_array(), self.members if self.members is not None else np.zeros(len(self))
         diameters_mm = 2000.0 * self.radii
         caps = [{"id": k, "center": center.tolist(), "axis": rotation[:, 2].tolist(), "rotation": rotation.tolist(),
                  "radius": float(radius), "height": float(scale[2]), "cap_diameter_mm": float(diameter),
-                 "grade": grade, "score": float(score), "num_points": int(count)}
+                 "grade": grade, "score": float(score), "uncertain": bool(score < min_score), "num_points": int(count)}
                 for k, (center, rotation, scale, radius, diameter, grade, score, count) in
                 enumerate(zip(self.centers, self.rotations, self.scales, self.radii, diameters_mm,
                               grades.grade_of(diameters_mm), scores, members))]
-        return {"frame": frame, "units": "m", "readings": readings, "grades": grades.to_document(), "mushrooms": caps}
+        return {"frame": frame, "units": "m", "readings": readings, "grades": grades.to_document(),
+                "min_score": float(min_score), "mushrooms": caps}
 
     @staticmethod
     def from_document(document: dict) -> "Caps":

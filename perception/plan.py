@@ -4,7 +4,7 @@ between the neighbours, which caps wait for others, and the order to take them i
 Everything is computed for all caps at once from the detections and the fused cloud, in the caps'
 frame, with ``up`` the bed's normal in that frame:
 
-- ``ready``: the cap is as wide as ``PickConfig.pick_diameter_mm`` and scored at least ``ready_score``.
+- ``ready``: the cap is as wide as ``PickConfig.pick_diameter_mm`` and scored at least ``min_score``.
 - ``grasp`` and ``approach``: a suction cup takes a cap at the top of its dome, fingers at its rim (the
   cap's wide base); the gripper comes along ``approach`` (a unit vector pointing away from the cap, the
   way the gripper moves back out), the cap's axis turned toward ``up`` as far as ``max_tilt_deg`` asks.
@@ -62,8 +62,9 @@ class PickConfig:
     """How far from vertical the gripper may come in."""
     pick_diameter_mm: float = 30.0
     """Caps narrower than this are left to grow."""
-    ready_score: float = 0.5
-    """Caps scored lower than this are not picked."""
+    min_score: float = 0.5
+    """Caps scored lower than this are uncertain: kept in the detection document, flagged
+    ``"uncertain": true``, and not picked."""
 
     def __post_init__(self):
         if self.gripper not in ("suction", "fingers"):
@@ -152,7 +153,7 @@ def plan_picks(caps: Caps, points: np.ndarray, config: PickConfig = PickConfig()
         return PickPlan(np.zeros(0, bool), empty, empty, np.zeros(0), np.zeros(0, bool), np.zeros((0, 0), bool),
                         (), 0.0)
     radii_mm = 1000.0 * caps.radii
-    ready = (2 * radii_mm >= config.pick_diameter_mm) & (caps.score_array() >= config.ready_score)
+    ready = (2 * radii_mm >= config.pick_diameter_mm) & (caps.score_array() >= config.min_score)
     approach = tilted_toward(caps.axes, up, np.radians(config.max_tilt_deg))
     on_top = config.gripper == "suction"
     grasp = caps.centers + (caps.scales[:, 2:3] * caps.axes if on_top else 0.0)

@@ -4,7 +4,7 @@ person reads (plots embedded as PNG, nothing fetched to open it), with each bed'
 A bed is a session MCAP (its last unit's caps, over its fused cloud), a detection document (JSON, as
 ``detect`` writes it; a list of them gives its last) or a folder of those. Every cap is graded afresh by
 one table, so beds recorded under another table still read alike; it is flagged ``uncertain`` when it
-scores under the pick plan's ``ready_score`` (or its document says so) and ``partial`` when the scan
+scores under the pick plan's ``min_score`` (or its document says so) and ``partial`` when the scan
 does not cover its footprint (or its document says so)."""
 
 from __future__ import annotations
@@ -119,7 +119,7 @@ def read_bed(path: Path, grades: GradeTable, pick: PickConfig = PickConfig()) ->
     diameters = 2000.0 * caps.radii
     entries = document["mushrooms"]
     said = lambda key: np.array([bool(entry.get(key, False)) for entry in entries], bool)  # noqa: E731
-    uncertain = said("uncertain") | (caps.score_array() < pick.ready_score)
+    uncertain = said("uncertain") | (caps.score_array() < pick.min_score)
     partial = said("partial")
     if scan is not None:
         partial |= footprint_coverage(centers, caps.radii, scan) < PARTIAL_BELOW

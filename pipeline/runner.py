@@ -248,7 +248,8 @@ class Runner:
                 found = (self._detector.detect(cloud.points, clustering, readings) if self._detector is not None
                          else detect_points(self.model, cloud.points, clustering, readings=readings))
                 result = transform_result(found, cloud.T_world_bed, "world")
-                document = {**result.caps.to_document("world", readings, self.config.grades),
+                document = {**result.caps.to_document("world", readings, self.config.grades,
+                                                          self.config.plan.min_score),
                             "plan": plan_of_result(found, cloud.points, self.config.plan, cloud.T_world_bed),
                             "T_world_bed": cloud.T_world_bed.tolist()}
                 now = time.perf_counter()

@@ -70,7 +70,8 @@ def test_detect_writes_json_in_the_input_frame(tmp_path, scene_ply):
     assert [m["id"] for m in payload["mushrooms"]] == list(range(6))
     for m in payload["mushrooms"]:
         assert set(m) == {"id", "center", "axis", "rotation", "radius", "height", "cap_diameter_mm", "grade",
-                          "score", "num_points"}
+                          "score", "uncertain", "num_points"}
+        assert m["uncertain"] == (m["score"] < payload["min_score"])
         assert m["grade"] == GradeTable().grade_of([m["cap_diameter_mm"]])[0]
         assert 0 < m["score"] and 0 < m["height"] < m["radius"] and m["num_points"] > 0
     rows = rrd_entity_rows(tmp_path / "det.rrd")

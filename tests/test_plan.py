@@ -46,7 +46,7 @@ def bed_cloud():
 def test_constructed_bed_by_hand():
     caps = upright_caps(BED)
     plan = plan_picks(caps, bed_cloud(), PickConfig(gripper="suction", gripper_diameter_mm=30.0,
-                                                    pick_diameter_mm=30.0, ready_score=0.5))
+                                                    pick_diameter_mm=30.0, min_score=0.5))
     # diameters 40, 40, 20, 32, 60 mm against 30 mm, all scored 0.9
     assert plan.ready.tolist() == [True, True, False, True, True]
     # suction takes each upright cap at its top, straight down

@@ -94,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"{len(result.caps)} caps in {args.cloud} ({len(points)} points, frame: {frame}, metres)")
     _print_caps(result, T_input_bed[:3, 2], grades)
     _warn_outside_range(model, bed_points, result, args.cloud)
-    payload = {**result.caps.to_document(frame, args.readings, grades), "plan": plan,
+    payload = {**result.caps.to_document(frame, args.readings, grades, pick.min_score), "plan": plan,
                "T_input_bed": T_input_bed.tolist()}
     replace_file(out, json.dumps(payload, indent=1))
     print(f"detections: {out}", flush=True)
