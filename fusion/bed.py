@@ -65,13 +65,19 @@ def turned_over(T_input_bed: np.ndarray) -> np.ndarray:
     return T_input_bed @ np.diag([1.0, -1.0, -1.0, 1.0])
 
 
-def side_with_caps(T_input_bed: np.ndarray, cap_evidence: Callable[[np.ndarray], int]) -> np.ndarray:
+def side_with_caps(T_input_bed: np.ndarray, cap_evidence: Callable[[np.ndarray], int],
+                   most_evidence: Callable[[np.ndarray], int] | None = None) -> np.ndarray:
     """``T_input_bed``, or the frame turned over when ``cap_evidence`` (how many cap voxels a detector
     sees in the cloud put in a given bed frame) finds far more caps that way. A bed's caps tell the
     plane's two sides apart where its soil relief or the input's origin (``up_side``) can mislead:
-    cloddy soil goes as deep below the plane as caps stand above it."""
+    cloddy soil goes as deep below the plane as caps stand above it. ``most_evidence`` bounds the
+    evidence a frame can show (its voxel count): when even that falls short, the turned frame is not
+    read at all, which on a bed full of caps saves the detector's pass."""
+    needed = TURN_EVIDENCE * max(cap_evidence(T_input_bed), 10)
     turned = turned_over(T_input_bed)
-    return turned if cap_evidence(turned) > TURN_EVIDENCE * max(cap_evidence(T_input_bed), 10) else T_input_bed
+    if most_evidence is not None and most_evidence(turned) <= needed:
+        return T_input_bed
+    return turned if cap_evidence(turned) > needed else T_input_bed
 
 
 def up_side(normal: np.ndarray, heights: np.ndarray, distance: float, normals: np.ndarray | None,

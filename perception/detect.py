@@ -128,9 +128,10 @@ class Reading:
         return int((self.output[1] > 0.5).sum())
 
 
-@torch.no_grad()
-def first_reading(model: MushroomNet, points: np.ndarray, thin: bool = True, zoom: float | None = None) -> Reading:
-    """One pass of the network over a non-empty cloud in the bed frame, as ``predict`` reads it first."""
+def reading_input(model: MushroomNet, points: np.ndarray, thin: bool = True,
+                  zoom: float | None = None) -> tuple[np.ndarray, float, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """What the network's first reading of a non-empty cloud in the bed frame takes in: the points
+    read, the zoom, their voxels, each read point's voxel and the voxels' zoomed centroids."""
     points = np.asarray(points, np.float64)
     kept = at_training_density(model, points) if thin else np.arange(len(points))
     zoom = reading_zoom(model, points[kept]) if zoom is None else zoom
@@ -139,7 +140,15 @@ def first_reading(model: MushroomNet, points: np.ndarray, thin: bool = True, zoo
         raise ValueError(f"the cloud reaches {reach:.3g} m from the bed origin, beyond the voxel grid's "
                          f"{grid:.0f} m: bring it near the origin")
     device = next(model.parameters()).device
-    coords, kept_to_voxel, zoomed_centroids = network_input(zoom * points[kept], model.config.voxel, device)
+    return kept, zoom, *network_input(zoom * points[kept], model.config.voxel, device)
+
+
+@torch.no_grad()
+def first_reading(model: MushroomNet, points: np.ndarray, thin: bool = True, zoom: float | None = None,
+                  read: tuple | None = None) -> Reading:
+    """One pass of the network over a non-empty cloud in the bed frame, as ``predict`` reads it first;
+    ``read`` is the cloud's ``reading_input`` when it was made already."""
+    kept, zoom, coords, kept_to_voxel, zoomed_centroids = reading_input(model, points, thin, zoom) if read is None else read
     return Reading(kept, zoom, coords, kept_to_voxel, zoomed_centroids,
                    network_output(model, coords, zoomed_centroids, zoom))
 
@@ -296,25 +305,33 @@ def detect_points(model: MushroomNet, points: np.ndarray, cluster_config: Cluste
                        timings_ms=timings)
 
 
-
-
 def detect_up_side(model: MushroomNet, points: np.ndarray, T_input_bed: np.ndarray,
                    cluster_config: ClusterConfig = ClusterConfig(), zoom: float | None = None,
                    readings: int = LIVE_READINGS) -> tuple[np.ndarray, np.ndarray, SceneResult]:
     """T_input_bed turned to the side of the bed plane its caps say is up (``fusion.bed.side_with_caps``),
-    the cloud in that bed frame, and its caps. The cloud is read once in each frame, and the chosen
-    frame's reading is the first of its ``readings``."""
+    the cloud in that bed frame, and its caps. The cloud is read once in each frame (the turned one not
+    at all when it holds too few voxels to win), and the chosen frame's reading is the first of its
+    ``readings``."""
     from fusion.bed import side_with_caps
 
-    read = {}
+    inputs, readings_made = {}, {}
+
+    def read_input(T: np.ndarray) -> tuple:
+        if T.tobytes() not in inputs:
+            bed_points = transform_points(np.linalg.inv(T), points)
+            inputs[T.tobytes()] = bed_points, reading_input(model, bed_points, zoom=zoom)
+        return inputs[T.tobytes()]
 
     def cap_voxels(T: np.ndarray) -> int:
-        bed_points = transform_points(np.linalg.inv(T), points)
-        read[T.tobytes()] = bed_points, first_reading(model, bed_points, zoom=zoom)
-        return read[T.tobytes()][1].cap_voxels
+        bed_points, read = read_input(T)
+        readings_made[T.tobytes()] = first_reading(model, bed_points, read=read)
+        return readings_made[T.tobytes()].cap_voxels
 
-    T_input_bed = side_with_caps(T_input_bed, cap_voxels)
-    bed_points, first = read[T_input_bed.tobytes()]
+    def voxel_count(T: np.ndarray) -> int:
+        return len(read_input(T)[1][2])
+
+    T_input_bed = side_with_caps(T_input_bed, cap_voxels, voxel_count)
+    bed_points, first = inputs[T_input_bed.tobytes()][0], readings_made[T_input_bed.tobytes()]
     return T_input_bed, bed_points, detect_points(model, bed_points, cluster_config, zoom, readings, first)
 
 

@@ -1,16 +1,20 @@
 """Weights files: the shipped model, loading, saving and averaging trained networks, and the zoom a
 file's model is read at. Imports no training code, so ``detect`` loads its model without the
-synthetic generator, fusion or Rerun."""
+synthetic generator, fusion or Rerun; torch loads when a file is read or written, so that a command
+names the shipped file (and refuses a bad output) before it pays for torch."""
 
 from __future__ import annotations
 
 import io
 from pathlib import Path
-
-import torch
+from typing import TYPE_CHECKING
 
 from common.files import write_atomically
-from perception.model import MushroomNet, NetworkConfig
+
+if TYPE_CHECKING:
+    import torch
+
+    from perception.model import MushroomNet
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "default.pt"
 """The shipped model."""
@@ -27,6 +31,8 @@ class WeightsWriteError(RuntimeError):
 def write_payload(payload: dict, path: Path) -> None:
     """``payload`` in ``path`` whole, or ``path`` as it was and a WeightsWriteError that says why.
     Serialised in memory first: torch reports a failed write (a full disk) only as an opaque RuntimeError."""
+    import torch
+
     buffer = io.BytesIO()
     torch.save(payload, buffer)
     try:
@@ -37,6 +43,8 @@ def write_payload(payload: dict, path: Path) -> None:
 
 def all_finite(model: torch.nn.Module) -> bool:
     """Whether every weight and running statistic is a finite number (a diverged run's are not)."""
+    import torch
+
     return all(torch.isfinite(value).all() for value in model.state_dict().values() if value.is_floating_point())
 
 
@@ -54,6 +62,10 @@ def scene_spacing(train_config: dict) -> float | None:
 
 def load_weights(path: Path, device: str = "cpu") -> tuple[MushroomNet, dict]:
     """A trained network and its metadata from a weights file (model.pt) or a checkpoint."""
+    import torch
+
+    from perception.model import MushroomNet, NetworkConfig
+
     try:
         state = torch.load(path, map_location=device, weights_only=False)
         network = NetworkConfig.from_dict(state["network"])
@@ -102,6 +114,10 @@ def average_weights(paths: list[Path]) -> tuple[MushroomNet, dict]:
     of their weights is a working model, often better than either, read at no extra cost (MODEL_CARD.md:
     the ``long10k`` soup of two fine-tunes); runs from separate starts do not, so they are refused. The
     mean's training cost is every run behind it, a shared one counted once."""
+    import torch
+
+    from perception.model import MushroomNet
+
     if len(paths) < 2:
         raise ValueError("averaging needs two weights files or more")
     loaded = [load_weights(Path(path)) for path in paths]

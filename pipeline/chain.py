@@ -10,7 +10,7 @@ from typing import Any, Callable
 
 from capture.source import Source
 from pipeline.runner import RunConfig, Runner, RunSummary
-from pipeline.viewer import ViewerTarget
+from pipeline.viewer_target import ViewerTarget
 
 
 @dataclass(frozen=True)

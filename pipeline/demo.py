@@ -34,7 +34,7 @@ def run_demo(out_dir: Path, model, seed: int = 0, views: int = 18, rrd: bool = T
              progress: bool = True) -> DemoResult:
     """Run the chain into ``out_dir``: session.mcap, detections.json and (``rrd``) demo.rrd appear
     together when the run succeeds; an interrupted or failed run leaves the folder as it was. A
-    ``pipeline.viewer.ViewerTarget`` also shows the run in a viewer (its ``rrd`` is demo.rrd's)."""
+    ``pipeline.viewer_target.ViewerTarget`` also shows the run in a viewer (its ``rrd`` is demo.rrd's)."""
     staging = Path(tempfile.mkdtemp(prefix=".demo-", dir=out_dir))
     try:
         result = _run(staging, model, seed, views, rrd, viewer, progress)
@@ -57,7 +57,7 @@ def _run(folder: Path, model, seed: int, views: int, rrd: bool, viewer, progress
     from pipeline.chain import Outputs, run_chain
     from capture.virtual import VirtualCameraConfig
     from pipeline.sources import VirtualBed, virtual_bed_source
-    from pipeline.viewer import ViewerTarget
+    from pipeline.viewer_target import ViewerTarget
 
     start = time.perf_counter()
     camera = VirtualCameraConfig(views=views, start_ns=time.time_ns())

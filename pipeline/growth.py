@@ -73,7 +73,8 @@ def track_document(bed_id: str, scans: list[Scan], tracks: BedTracks, grades: Gr
 def write_track_rrd(path: Path, scans: list[Scan], tracks: BedTracks) -> None:
     """The bed scan by scan on the ``scan`` timeline, in the first scan's frame, each cap labelled with
     the id it keeps."""
-    from pipeline.viewer import ViewerTarget, log_scan, viewer_stream
+    from pipeline.viewer import log_scan, viewer_stream
+    from pipeline.viewer_target import ViewerTarget
 
     ids = {(s, c): track.id for track in tracks.tracks for s, c in zip(track.scans, track.caps)}
     with viewer_stream(ViewerTarget(path), "track") as rec:

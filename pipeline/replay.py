@@ -114,7 +114,7 @@ def run_replay(session: Path, model, out_dir: Path, viewer=None, options: Replay
                on_start=None, expected: list[dict] | None = None) -> ReplayResult:
     """Replay ``session`` (an MCAP session, or a RealSense device file through the driver) into
     ``out_dir`` (replay.mcap: the session's frames with the new fusion and perception topics;
-    detections.json: the last unit's caps) and the ``pipeline.viewer.ViewerTarget`` ``viewer`` (None:
+    detections.json: the last unit's caps) and the ``pipeline.viewer_target.ViewerTarget`` ``viewer`` (None:
     no viewer); with ``check``, compare every unit's caps with
     ``expected``, by default those the session recorded."""
     from capture.mcap.reader import McapSource, TruncatedRecordingWarning, read_fused_units, read_session_info
@@ -122,7 +122,7 @@ def run_replay(session: Path, model, out_dir: Path, viewer=None, options: Replay
     from fusion.cloud import FusedCloud
     from pipeline.chain import Outputs, run_chain
     from pipeline.runner import RunConfig
-    from pipeline.viewer import ViewerTarget
+    from pipeline.viewer_target import ViewerTarget
 
     if check is not None and expected is None:
         expected = expected_documents(session)

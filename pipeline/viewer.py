@@ -1,13 +1,13 @@
-"""Everything the Rerun viewer shows, in one place: where a run's stream goes (a .rrd, a spawned
-viewer, a served web viewer), the entity paths, the blueprint, and one logging function per thing
-shown (camera frames, the fused cloud, the caps and the pick plan, synthetic beds, run and training
-statistics). Commands get the --rrd, --spawn and --serve flags from ``pipeline.commands.common``."""
+"""Everything the Rerun viewer shows, in one place: the stream to where a run's ``ViewerTarget``
+says (a .rrd, a spawned viewer, a served web viewer), the entity paths, the blueprint, and one logging
+function per thing shown (camera frames, the fused cloud, the caps and the pick plan, synthetic beds,
+run and training statistics). Commands get the --rrd, --spawn and --serve flags from
+``pipeline.commands.common``."""
 
 from __future__ import annotations
 
 import sys
 from contextlib import contextmanager, nullcontext
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
@@ -16,6 +16,7 @@ import rerun as rr
 
 from common.files import atomic_path
 from perception.cap import CAP_COLOR
+from pipeline.viewer_target import ViewerTarget
 
 APPLICATION_ID = "mushroom-pose"
 WEB_PORT = 9090
@@ -49,26 +50,6 @@ TRUE_CAP_COLOR = (230, 60, 40)
 def camera_entity(sensor_id: str) -> str:
     """A camera's pose and pinhole; its ``depth``, ``color`` and ``caps`` (the rims it sees) below it."""
     return f"{WORLD}/camera/{sensor_id}"
-
-
-@dataclass(frozen=True)
-class ViewerTarget:
-    """Where a run's Rerun stream goes: a .rrd file, a viewer spawned beside the run, a web viewer served
-    for a headless machine; any of them together, or none."""
-
-    rrd: Path | None = None
-    spawn: bool = False
-    serve: bool = False
-    hold: bool = False
-    """With ``serve``: keep serving after the run ends, until Ctrl-C (a command that ends on its own)."""
-
-    def __post_init__(self) -> None:
-        if self.spawn and self.serve:
-            raise ValueError("a run either spawns a viewer or serves one, not both")
-
-    @property
-    def wanted(self) -> bool:
-        return self.rrd is not None or self.spawn or self.serve
 
 
 @contextmanager

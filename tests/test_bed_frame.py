@@ -69,3 +69,25 @@ def test_the_bed_frame_does_not_depend_on_where_ransac_starts(bed_points):
     frames = [estimate_bed_frame(tilted, seed=seed) for seed in range(4)]
     for T in frames[1:]:
         assert np.array_equal(T, frames[0])
+
+
+@pytest.mark.parametrize("here, turned, most, expected", [
+    (100, 401, None, "turned"), (100, 400, None, "kept"), (2, 41, None, "turned"),
+    (100, 401, 400, "kept"), (100, 401, 401, "turned")],
+    ids=["more than 4 times", "exactly 4 times", "at least 10 counted", "bound too low", "bound reaches"])
+def test_the_caps_turn_the_bed_over_only_when_they_say_so_plainly(here, turned, most, expected):
+    """``side_with_caps`` turns the frame when the turned side shows more than TURN_EVIDENCE times the cap
+    evidence (counted as at least 10); a bound on the evidence that falls short saves reading that side."""
+    from fusion.bed import TURN_EVIDENCE, side_with_caps, turned_over
+
+    assert TURN_EVIDENCE == 4.0  # the cases above are written for it
+    T = estimate_bed_frame(np.random.default_rng(0).normal(size=(200, 3)) * [1, 1, 0.01])
+    asked = []
+
+    def evidence(frame):
+        asked.append(frame)
+        return turned if np.allclose(frame, turned_over(T)) else here
+
+    chosen = side_with_caps(T, evidence, None if most is None else lambda frame: most)
+    assert np.allclose(chosen, turned_over(T) if expected == "turned" else T)
+    assert len(asked) == (1 if most is not None and most <= TURN_EVIDENCE * here else 2)

@@ -147,7 +147,7 @@ def test_detect_bad_input(tmp_path, weights, case, fragment):
         save_weights(network, model, **meta)
     out = tmp_path / "det.json"
     out.write_text("previous result")
-    one_line_error(run("detect", cloud, "--model", model, "--out", out), fragment)
+    one_line_error(run("detect", cloud, "--model", model, "--out", out, "--overwrite"), fragment)
     assert out.read_text() == "previous result"
 
 
@@ -444,3 +444,17 @@ def test_detect_grades_caps_by_the_growers_table(tmp_path, scene_ply):
     one_line_error(run("detect", ply, "--out", tmp_path / "e.json", "--grades", table),
                    "without 'from_mm'")
     assert not (tmp_path / "e.json").exists()
+
+
+def test_detect_shown_in_no_viewer_loads_no_viewer(tmp_path, scene_ply):
+    """rerun-sdk is loaded only by a command shown in Rerun: without --rrd, --spawn or --serve, detect
+    pays neither its import nor its exit."""
+    import sys
+
+    ply, _ = scene_ply
+    code = ("import sys; from pipeline.cli import main; "
+            f"code = main(['detect', {str(ply)!r}, '--out', {str(tmp_path / 'd.json')!r}]); "
+            "print(code, sorted(m for m in ('rerun', 'torch') if m in sys.modules))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.stdout.strip().splitlines()[-1] == "0 ['torch']", result.stderr
+    assert json.loads((tmp_path / "d.json").read_text())["mushrooms"]

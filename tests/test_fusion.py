@@ -201,7 +201,8 @@ def test_streaming_every_n_frames_and_fixed_step(session):
 
 def test_the_viewer_shows_the_fused_cloud(session, tmp_path):
     from helpers import rrd_values
-    from pipeline.viewer import ViewerTarget, log_fused_cloud, viewer_stream
+    from pipeline.viewer import log_fused_cloud, viewer_stream
+    from pipeline.viewer_target import ViewerTarget
 
     fused = fuse(session.frames[:1])
     with viewer_stream(ViewerTarget(tmp_path / "fusion.rrd")) as rec:

@@ -6,7 +6,8 @@ import pytest
 
 from capture.frames import CameraIntrinsics, DepthFrame
 from helpers import rerun_matrix, rrd_entity_rows, rrd_values
-from pipeline.viewer import ViewerTarget, blueprint, log_frame, send_blueprint, set_frame, viewer_stream
+from pipeline.viewer import blueprint, log_frame, send_blueprint, set_frame, viewer_stream
+from pipeline.viewer_target import ViewerTarget
 
 
 def test_camera_frames_land_under_world_camera(tmp_path):

@@ -216,10 +216,10 @@ def add_viewer_flags(parser: argparse.ArgumentParser, rrd: str | None = "also wr
 
 def viewer_target(args: argparse.Namespace, inputs: tuple[str | None, ...] = (), rrd: str | None = None,
                   hold: bool = True):
-    """The ``pipeline.viewer.ViewerTarget`` of ``add_viewer_flags``' flags, its .rrd checked as an output
+    """The ``pipeline.viewer_target.ViewerTarget`` of ``add_viewer_flags``' flags, its .rrd checked as an output
     (``rrd``: the file when the command names its own); with ``hold``, ``--serve`` keeps serving after
     the command's work is done."""
-    from pipeline.viewer import ViewerTarget
+    from pipeline.viewer_target import ViewerTarget
 
     path = writable_file(rrd if rrd is not None else getattr(args, "rrd", None), inputs, suffix=".rrd")
     return ViewerTarget(path, args.spawn, args.serve, hold)

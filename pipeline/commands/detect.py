@@ -51,11 +51,6 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from common.geometry import transform_points
-    from fusion.bed import not_a_bed, too_many_caps
-    from perception.detect import detect_points, detect_up_side, transform_result
-    from perception.instances import ClusterConfig
-    from perception.plan import plan_of_result
     from pipeline.clouds import load_cloud
 
     pick, grades = pick_config(args), grade_table(args)
@@ -69,6 +64,14 @@ def run(args: argparse.Namespace) -> int:
     viewer = viewer_target(args, inputs=(args.cloud, model_path(args.model)))
     if viewer.rrd is not None and viewer.rrd.resolve() == out.resolve():
         raise CliError(f"--out and --rrd are both {args.out}; give them different names")
+    refuse_to_replace([out, viewer.rrd], args.overwrite)
+
+    from common.geometry import transform_points
+    from fusion.bed import not_a_bed, too_many_caps
+    from perception.detect import detect_points, detect_up_side, transform_result
+    from perception.instances import ClusterConfig
+    from perception.plan import plan_of_result
+
     if args.units == "auto" and cloud.units != "m":
         print(f"note: {args.cloud} is read in {UNIT_NAMES[cloud.units]} (its points lie {cloud.spacing:.3g} units "
               f"apart over {cloud.extent:.3g}); give --units to say otherwise", file=sys.stderr)
@@ -78,7 +81,6 @@ def run(args: argparse.Namespace) -> int:
     T_input_bed, frame = _bed_frame(args, cloud)
     bed_points = transform_points(np.linalg.inv(T_input_bed), points)
     _refuse_unless_forced(args, not_a_bed(bed_points))
-    refuse_to_replace([out, viewer.rrd], args.overwrite)
     clustering = ClusterConfig(method=args.method)
     try:
         if frame == "input":  # the bed plane was found here: which side is up, its caps say
