@@ -15,7 +15,7 @@ to the true caps of their scan (centres within half the true radius, at least 8 
 - repeatability: each bed scanned twice with the rig moved and nothing grown, the median change of a
   cap's measured diameter.
 
-Usage: python bench/growth.py [--beds 10] [--days 5] [--seed 5000] [--readings 4]
+Usage: python bench/growth.py [--beds 10] [--days 5] [--seed 5000] [--readings 4] [--model PATH]
 """
 
 import sys
@@ -103,13 +103,14 @@ def main() -> None:
     parser.add_argument("--days", type=int, default=5)
     parser.add_argument("--seed", type=int, default=5000)
     parser.add_argument("--readings", type=int, default=4)
+    parser.add_argument("--model", type=Path, help="weights file (default: the shipped model)")
     args = parser.parse_args()
 
     from perception.synthetic.days import GrowthConfig, bed_over_days
     from perception.track import Scan, TrackConfig, track_bed
     from perception.weights import DEFAULT_WEIGHTS, load_weights
 
-    model = load_weights(DEFAULT_WEIGHTS)[0]
+    model = load_weights(args.model or DEFAULT_WEIGHTS)[0]
     config, growth = TrackConfig(), GrowthConfig(days=args.days)
     totals = {name: [0, 0] for name in ("kept", "wrong", "appeared", "picked")}
     rate_errors, forecasts, repeat = [], [], []

@@ -374,7 +374,7 @@ def stage_seconds(ply: Path, detect_args: list[str]) -> tuple[dict, np.ndarray, 
     T_input_bed = np.eye(4) if cloud.in_bed_frame or args.bed_frame else estimate_bed_frame(cloud.points)
     seconds["bed plane"] = time.perf_counter() - start
     bed_points = transform_points(np.linalg.inv(T_input_bed), cloud.points)
-    result = detect_points(model, bed_points, ClusterConfig(method=args.clustering), zoom=args.zoom,
+    result = detect_points(model, bed_points, ClusterConfig(method=args.method), zoom=args.zoom,
                            readings=args.readings)
     for name in ("network", "instances", "pose"):
         seconds[name] = result.timings_ms.get(name, math.nan) / 1000

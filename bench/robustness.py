@@ -22,9 +22,8 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from fusion.bed import estimate_bed_frame  # noqa: E402
 from perception.cap import Caps  # noqa: E402
-from perception.detect import FILE_READINGS, detect_up_side, transform_result  # noqa: E402
+from perception.detect import FILE_READINGS, detect_cloud  # noqa: E402
 from perception.evaluate import detection_outcomes, evaluate, visible_truth  # noqa: E402
 from perception.synthetic.families import FAMILIES, family_seeds  # noqa: E402
 from perception.synthetic.scene import generate_scene  # noqa: E402
@@ -32,13 +31,6 @@ from perception.weights import DEFAULT_WEIGHTS, load_weights  # noqa: E402
 from pipeline.process import reuse_freed_memory  # noqa: E402
 
 CALIBRATION_BINS = 10
-
-
-def caps_as_detect_reads(model, points: np.ndarray, readings: int):
-    """The caps of a cloud in its own frame, as ``detect`` finds them (bed plane, up side, readings)."""
-    T_input_bed = estimate_bed_frame(points)
-    T_input_bed, _, result = detect_up_side(model, points, T_input_bed, readings=readings)
-    return transform_result(result, T_input_bed, "input").caps
 
 
 def expected_calibration_error(scores: np.ndarray, correct: np.ndarray, bins: int = CALIBRATION_BINS) -> float:
@@ -51,13 +43,34 @@ def expected_calibration_error(scores: np.ndarray, correct: np.ndarray, bins: in
     return float(gap.sum() / counts.sum())
 
 
+def print_reliability(scores: np.ndarray, correct: np.ndarray, bins: int = CALIBRATION_BINS) -> None:
+    """The reliability table (per score bin: detections, mean score, share correct) and the lowest
+    score threshold whose detections are correct 95 % of the time or more."""
+    if not len(scores):
+        return
+    which = np.minimum((scores * bins).astype(int), bins - 1)
+    print("\n| score | detections | mean score | correct |\n|---|---|---|---|")
+    for b in np.unique(which):
+        inside = which == b
+        print(f"| {b / bins:.1f}-{(b + 1) / bins:.1f} | {int(inside.sum())} | {scores[inside].mean():.3f} | "
+              f"{correct[inside].mean():.3f} |")
+    order = np.argsort(-scores, kind="stable")
+    precision = np.cumsum(correct[order]) / np.arange(1, len(order) + 1)
+    good = np.flatnonzero(precision >= 0.95)
+    if len(good):
+        cut = scores[order][good[-1]]
+        above = scores >= cut
+        print(f"precision >= 0.95 down to score {cut:.3f}: precision {correct[above].mean():.3f}, "
+              f"{int(above.sum())} of {len(scores)} detections")
+
+
 def family_row(model, name: str, beds: int, readings: int, min_score: float) -> dict:
     preds, gts, unread = [], [], 0
     for seed in tqdm(family_seeds(name, beds), desc=name, unit="bed", leave=False):
         scene = generate_scene(seed, FAMILIES[name].config)
         points = scene.points.astype(np.float64)
         try:
-            preds.append(caps_as_detect_reads(model, points, readings))
+            preds.append(detect_cloud(model, points, readings=readings))
         except (ValueError, RuntimeError) as error:  # no bed plane: the bed counts as all missed
             print(f"  {name} bed {seed}: {error}", file=sys.stderr)
             preds.append(Caps(np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0)))
@@ -111,6 +124,7 @@ def main() -> None:
     correct = np.concatenate([row["correct"] for row in rows] + [[]])
     print(f"all families: ECE {expected_calibration_error(scores, correct):.3f} over {len(scores)} detections; "
           f"{time.perf_counter() - started:.0f} s")
+    print_reliability(scores, correct)
     if args.json:
         args.json.write_text(json.dumps({"model": str(args.model), "beds": args.beds, "readings": args.readings,
                                          "min_score": args.min_score, "families": rows}, indent=1))

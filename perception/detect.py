@@ -69,7 +69,7 @@ LIVE_READINGS = 1
 FILE_READINGS = 4
 """How many times ``detect`` and ``eval`` read a cloud, each reading turned another 90 degrees about the
 vertical: the voxel grid falls differently over each cap in every reading, and their average gives
-steadier caps with fewer false detections (model card, "How the fit's constants were chosen")."""
+steadier caps with fewer false detections (docs/RESULTS.md, "How the fit's constants were chosen")."""
 
 MAX_READINGS = 12
 """The most readings a command takes: each is a pass of the network, and more than six steady the caps
@@ -85,7 +85,7 @@ NEIGHBOUR_PER_SPACING = 0.645
 spacing: how a cloud's measured neighbour distance is read as a generator's spacing."""
 SPARSE_ZOOM_EXPONENT = 0.56
 """How much lower a sparse cloud is read: zoom x (spacing ratio)^-0.56, so a bed sampled every 5 mm is
-read at 0.9 instead of 1.2, where its AP@50 peaks (model card, "How the fit's constants were chosen")."""
+read at 0.9 instead of 1.2, where its AP@50 peaks (docs/RESULTS.md, "How the fit's constants were chosen")."""
 
 
 def point_spacing(points: np.ndarray, samples: int = 5000) -> float:
@@ -299,6 +299,7 @@ def detect_points(model: MushroomNet, points: np.ndarray, cluster_config: Cluste
     prediction = predict(model, points, zoom=zoom, readings=readings, first=first)
     timings["network"] = 1000 * (time.perf_counter() - start)
     voxel_labels, fit = find_caps(prediction, model.config.voxel, cluster_config, timings=timings)
+    fit = model.calibration.applied(fit)
     point_labels = voxel_labels[prediction.point_to_voxel]
     members = np.bincount(point_labels[point_labels >= 0], minlength=len(fit))
     return SceneResult(replace(fit, members=members), point_labels, prediction.existence[prediction.point_to_voxel], prediction,
@@ -333,6 +334,17 @@ def detect_up_side(model: MushroomNet, points: np.ndarray, T_input_bed: np.ndarr
     T_input_bed = side_with_caps(T_input_bed, cap_voxels, voxel_count)
     bed_points, first = inputs[T_input_bed.tobytes()][0], readings_made[T_input_bed.tobytes()]
     return T_input_bed, bed_points, detect_points(model, bed_points, cluster_config, zoom, readings, first)
+
+
+def detect_cloud(model: MushroomNet, points: np.ndarray, cluster_config: ClusterConfig = ClusterConfig(),
+                 readings: int = FILE_READINGS) -> Caps:
+    """The caps of a bed's cloud in its own frame, found as ``mushroom-pose detect`` finds them: the bed
+    plane (``fusion.bed.estimate_bed_frame``), its up side by the caps, ``readings`` readings."""
+    from fusion.bed import estimate_bed_frame
+
+    T_input_bed = estimate_bed_frame(points)
+    T_input_bed, _, result = detect_up_side(model, points, T_input_bed, cluster_config, readings=readings)
+    return result.caps.moved(T_input_bed)
 
 
 def transform_result(result: SceneResult, T_frame_bed: np.ndarray, frame: str) -> SceneResult:

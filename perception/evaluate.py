@@ -271,11 +271,18 @@ def evaluate(preds: list[Caps], gts: list[Caps],
 def detection_outcomes(preds: list[Caps], gts: list[Caps], threshold: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
     """Every detection's score and whether it matches a true cap at IoU >= ``threshold`` (greedy by
     score over the pooled scenes, as AP matches): what precision, recall and calibration are read from."""
+    scores, matched = matched_truth(preds, gts, threshold)
+    return scores, matched >= 0
+
+
+def matched_truth(preds: list[Caps], gts: list[Caps], threshold: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+    """Every detection's score (the scenes' detections one after another) and the index in its scene's
+    truth of the cap it matches at IoU >= ``threshold`` (-1: none), matched as ``detection_outcomes``."""
     ious = [iou_matrix(p, g) for p, g in zip(preds, gts)]
     scene_of = np.concatenate([np.full(len(p), k) for k, p in enumerate(preds)] + [np.zeros(0, int)])
     index_of = np.concatenate([np.arange(len(p)) for p in preds] + [np.zeros(0, int)])
     scores = np.concatenate([p.score_array() for p in preds] + [np.zeros(0)])
-    return scores, _match(np.argsort(-scores, kind="stable"), scene_of, index_of, ious, threshold) >= 0
+    return scores, _match(np.argsort(-scores, kind="stable"), scene_of, index_of, ious, threshold)
 
 
 # ---- the detector on synthetic scenes
@@ -313,8 +320,9 @@ def scene_caps(model: MushroomNet, scene, methods, height: str, axis: str, zoom:
     prediction = predict(model, scene.points, zoom=zoom, readings=readings)
     found = {}
     for method in methods:
-        found[method] = find_caps(prediction, model.config.voxel, ClusterConfig(method=method), height, axis,
-                                  radius=radius)[1]
+        caps = find_caps(prediction, model.config.voxel, ClusterConfig(method=method), height, axis, radius=radius)[1]
+        # the calibration is measured on the rim radius that detect gives
+        found[method] = model.calibration.applied(caps) if radius == "rim" else caps
     return found, visible_truth(scene)
 
 

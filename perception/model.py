@@ -17,6 +17,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from perception.calibration import UNCALIBRATED
+
 from perception.sparse import (SparseBatchNorm, SparseConv3d, SparseConvTranspose3d, SparseReLU, SparseTensor,
                                SubmanifoldConv3d, sparse_cat)
 
@@ -159,6 +161,8 @@ class MushroomNet(nn.Module):
         """Point spacing of the beds it was trained on: inference thins denser clouds to it."""
         self.inference_zoom = inference_zoom
         """Scale at which inference reads clouds (``perception.detect.predict``), chosen per model."""
+        self.calibration = UNCALIBRATED
+        """What its cap scores and rim diameters mean (``perception.calibration``), from its weights file."""
         c1, c2, c3, c4 = config.channels
         u1, u2, u3, u4 = config.up_channels
         self.relu = SparseReLU(inplace=True)

@@ -33,7 +33,7 @@ HEIGHT_MODES = ("free", "fixed")
 AXIS_MODES = ("surface", "encoding")
 RADIUS_MODES = ("rim", "fit")
 SURFACE_ITERATIONS = 6
-"""Steps of the surface fit: the axis stops improving after about six (model card, pose-fit table)."""
+"""Steps of the surface fit: the axis stops improving after about six (docs/RESULTS.md, "How the fit's constants were chosen")."""
 SURFACE_L1_SCALE = 1e-4
 """Metres. Surface residuals above it are weighted as in an L1 fit, so that a cluster's stray voxels
 (rim, gills, a neighbour's edge) do not pull the axis."""

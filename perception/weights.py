@@ -51,7 +51,8 @@ def all_finite(model: torch.nn.Module) -> bool:
 def save_weights(model: MushroomNet, path: Path, **meta) -> None:
     """The shipped form of a model: its weights, its network config and how it was made."""
     write_payload({**meta, "model": model.state_dict(), "network": model.config.to_dict(),
-                   "point_spacing": model.point_spacing, "inference_zoom": model.inference_zoom}, Path(path))
+                   "point_spacing": model.point_spacing, "inference_zoom": model.inference_zoom,
+                   "calibration": model.calibration.to_dict()}, Path(path))
 
 
 def scene_spacing(train_config: dict) -> float | None:
@@ -64,6 +65,7 @@ def load_weights(path: Path, device: str = "cpu") -> tuple[MushroomNet, dict]:
     """A trained network and its metadata from a weights file (model.pt) or a checkpoint."""
     import torch
 
+    from perception.calibration import Calibration
     from perception.model import MushroomNet, NetworkConfig
 
     try:
@@ -73,6 +75,7 @@ def load_weights(path: Path, device: str = "cpu") -> tuple[MushroomNet, dict]:
         model = MushroomNet(network, point_spacing=spacing,
                             inference_zoom=state.get("inference_zoom", UNRECORDED_ZOOM)).to(device)
         model.load_state_dict(state["model"])
+        model.calibration = Calibration.from_dict(state.get("calibration"))
     except FileNotFoundError:
         raise
     except Exception as error:

@@ -76,12 +76,16 @@ def test_shape_families_make_the_caps_they_state(name, diameters_mm, height_rati
     assert len(scene.centers) and CAP_RADIUS_AT_UNIT_SCALE == 0.020
 
 
-def test_suite_beds_are_apart_per_family_and_from_the_recipe_training_beds():
+def test_suite_and_calibration_beds_are_apart_per_family_and_from_the_recipe_training_beds():
     suite = [seed for name in FAMILIES for seed in family_seeds(name, 50)]
     assert len(set(suite)) == len(suite)
     recipe = {0: 10000, 5: 2400, 15: 1300, 19: 600}  # the model card's run seeds and iterations
     trained = {iteration_seed(run_seed, i) for run_seed, count in recipe.items() for i in range(count)}
     assert not trained & set(suite)
+    from perception.calibration import CALIBRATION_SEED
+
+    calibration = {seed for name in FAMILIES for seed in family_seeds(name, 50, CALIBRATION_SEED)}
+    assert len(calibration) == 50 * len(FAMILIES) and not calibration & (set(suite) | trained)
     with pytest.raises(ValueError, match="unknown bed family"):
         family_seeds("mycelium", 1)
 
@@ -99,3 +103,9 @@ def test_synth_family_writes_its_beds_and_refuses_a_wrong_name(tmp_path):
     one_line_error(wrong, "unknown bed family 'mycelium'; choose one of shallow-domes")
     assert "casing-soil" in wrong.stderr
     assert not (tmp_path / "other").exists()
+
+
+def test_the_diameter_line_is_fit_on_the_domed_families_inside_the_range():
+    from perception.calibration_fit import DIAMETER_FAMILIES
+
+    assert set(DIAMETER_FAMILIES) == {name for name, family in FAMILIES.items() if family.in_range} - {"flats"}

@@ -77,9 +77,10 @@ FAMILIES = {
 """The suite's families by name, in the order the suite prints them."""
 
 
-def family_seeds(name: str, beds: int) -> list[int]:
-    """The suite's bed seeds of family ``name``: the same on every machine, apart per family."""
+def family_seeds(name: str, beds: int, base_seed: int = SUITE_SEED) -> list[int]:
+    """The bed seeds of family ``name`` drawn from ``base_seed`` (the suite's, or the calibration's):
+    the same on every machine, apart per family."""
     if name not in FAMILIES:
         raise ValueError(f"unknown bed family {name!r}; choose one of {', '.join(FAMILIES)}")
-    family_base = scene_seeds(SUITE_SEED, len(FAMILIES))[list(FAMILIES).index(name)]
+    family_base = scene_seeds(base_seed, len(FAMILIES))[list(FAMILIES).index(name)]
     return scene_seeds(family_base, beds)
