@@ -6,10 +6,10 @@ what it means: a score of p is a cap found at IoU >= 0.25 with frequency about p
 made strictly increasing so that the caps' ranking, and so AP, stays). It can also map measured rim
 diameters to the synthetic truth (a line fit of true on measured diameters of the domed caps found);
 the shipped model keeps its diameters as measured, since on the real cloud such a line makes caps read
-larger than their labels (model card). It is fit on
-beds of every family of ``perception.synthetic.families`` drawn from ``CALIBRATION_SEED``, apart from
-the suite's and the benches' beds (``perception.calibration_fit``), and stored in the weights file;
-``perception.detect`` applies it.
+larger than their labels (model card). It is fit on beds of every family of
+``perception.synthetic.families`` drawn from ``CALIBRATION_SEED``, apart from the suite's and the
+benches' beds (``perception.calibration_fit``), and stored in the weights file; ``perception.detect``
+applies it.
 """
 
 from __future__ import annotations
