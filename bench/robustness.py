@@ -33,11 +33,16 @@ from pipeline.process import reuse_freed_memory  # noqa: E402
 CALIBRATION_BINS = 10
 
 
+def score_bins(scores: np.ndarray, bins: int = CALIBRATION_BINS) -> np.ndarray:
+    """The equal-width score bin of each score (a score of 1 in the top bin)."""
+    return np.minimum((scores * bins).astype(int), bins - 1)
+
+
 def expected_calibration_error(scores: np.ndarray, correct: np.ndarray, bins: int = CALIBRATION_BINS) -> float:
     """Mean |frequency correct - mean score| over equal-width score bins, weighted by their counts."""
     if not len(scores):
         return float("nan")
-    which = np.minimum((scores * bins).astype(int), bins - 1)
+    which = score_bins(scores, bins)
     counts = np.bincount(which, minlength=bins)
     gap = np.abs(np.bincount(which, correct, bins) - np.bincount(which, scores, bins))
     return float(gap.sum() / counts.sum())
@@ -48,7 +53,7 @@ def print_reliability(scores: np.ndarray, correct: np.ndarray, bins: int = CALIB
     score threshold whose detections are correct 95 % of the time or more."""
     if not len(scores):
         return
-    which = np.minimum((scores * bins).astype(int), bins - 1)
+    which = score_bins(scores, bins)
     print("\n| score | detections | mean score | correct |\n|---|---|---|---|")
     for b in np.unique(which):
         inside = which == b
@@ -73,7 +78,7 @@ def family_row(model, name: str, beds: int, readings: int, min_score: float) -> 
             preds.append(detect_cloud(model, points, readings=readings))
         except (ValueError, RuntimeError) as error:  # no bed plane: the bed counts as all missed
             print(f"  {name} bed {seed}: {error}", file=sys.stderr)
-            preds.append(Caps(np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0)))
+            preds.append(Caps.none())
             unread += 1
         gts.append(visible_truth(scene))
     result = evaluate(preds, gts)

@@ -54,10 +54,12 @@ class Calibration:
 
     def applied(self, caps: Caps) -> Caps:
         """The caps with calibrated scores and rim radii (heights and poses as measured)."""
+        scores = None if caps.scores is None else self.scores(caps.scores)
+        if (self.diameter_scale, self.diameter_offset_mm) == (1.0, 0.0):
+            return replace(caps, scores=scores)
         scales = np.array(caps.scales, np.float64, copy=True)
         rim_mm = 2000 * scales[:, :2]
         scales[:, :2] = np.maximum(self.diameter_scale * rim_mm + self.diameter_offset_mm, 1.0) / 2000
-        scores = None if caps.scores is None else self.scores(caps.scores)
         return replace(caps, scales=scales, scores=scores)
 
     def to_dict(self) -> dict:

@@ -81,7 +81,7 @@ def main() -> None:
 
     import torch
 
-    from perception.weights import DEFAULT_WEIGHTS, load_weights, write_payload
+    from perception.weights import DEFAULT_WEIGHTS, load_weights, save_weights
 
     parser = argparse.ArgumentParser(description=main.__doc__)
     parser.add_argument("--model", type=Path, default=DEFAULT_WEIGHTS, help="the weights file (default: the shipped one)")
@@ -90,11 +90,10 @@ def main() -> None:
                         "truth (the shipped model does not: on the real cloud its caps then read larger than labelled)")
     args = parser.parse_args()
     torch.set_num_threads(2)
-    model, _ = load_weights(args.model)
+    model, meta = load_weights(args.model)
     calibration = fit_calibration(calibration_outcomes(model, args.beds), args.diameters)
-    payload = torch.load(args.model, map_location="cpu", weights_only=False)
-    payload["calibration"] = calibration.to_dict()
-    write_payload(payload, args.model)
+    model.calibration = calibration
+    save_weights(model, args.model, **meta)
     print(f"{args.model}: diameters x {calibration.diameter_scale:.4f} {calibration.diameter_offset_mm:+.2f} mm; "
           f"scores mapped by {len(calibration.raw_scores)} knots")
 

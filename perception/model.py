@@ -18,7 +18,6 @@ import torch
 from torch import nn
 
 from perception.calibration import UNCALIBRATED
-
 from perception.sparse import (SparseBatchNorm, SparseConv3d, SparseConvTranspose3d, SparseReLU, SparseTensor,
                                SubmanifoldConv3d, sparse_cat)
 
