@@ -16,7 +16,10 @@ to the true caps of their scan (centres within half the true radius, at least 8 
 - repeatability: each bed scanned twice with the rig moved and nothing grown, the median change of a
   cap's measured diameter.
 
-Usage: python bench/growth.py [--beds 10] [--days 5] [--seed 5000] [--readings 4] [--model PATH]
+``--caps FAMILY`` draws the caps' shapes as the robustness suite's cap-shape family of that name does
+(e.g. ``real-domes``, the real caps' height ratios) instead of the template's.
+
+Usage: python bench/growth.py [--beds 10] [--days 5] [--seed 5000] [--readings 4] [--model PATH] [--caps FAMILY]
 """
 
 import sys
@@ -33,6 +36,12 @@ from dataclasses import replace  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.optimize import linear_sum_assignment  # noqa: E402
 from tqdm import tqdm  # noqa: E402
+
+from perception.synthetic.families import FAMILIES  # noqa: E402
+from perception.synthetic.scene import SceneConfig  # noqa: E402
+
+CAP_FAMILIES = ("shallow-domes", "real-domes")
+"""The suite's cap-shape families whose sizes a growing bed can take (the others fix the caps' sizes)."""
 
 
 def detect_scan(model, points: np.ndarray, readings: int):
@@ -111,6 +120,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=5000)
     parser.add_argument("--readings", type=int, default=4)
     parser.add_argument("--model", type=Path, help="weights file (default: the shipped model)")
+    parser.add_argument("--caps", choices=CAP_FAMILIES, help="cap shapes of this suite family (default: the template's)")
     args = parser.parse_args()
 
     from perception.synthetic.days import GrowthConfig, bed_over_days
@@ -119,11 +129,15 @@ def main() -> None:
 
     model = load_weights(args.model or DEFAULT_WEIGHTS)[0]
     config, growth = TrackConfig(), GrowthConfig(days=args.days)
+    bed_config = SceneConfig(mushrooms=(10, 25))
+    if args.caps:
+        shapes = FAMILIES[args.caps].config
+        bed_config = replace(bed_config, axis_factor=shapes.axis_factor, cap_height=shapes.cap_height)
     totals = {name: [0, 0] for name in ("kept", "wrong", "appeared", "picked")}
     rate_errors, forecasts, forecasts_known_rate, repeat = [], [], [], []
     started = time.perf_counter()
     for bed in tqdm(range(args.beds), desc="beds", unit="bed"):
-        history = bed_over_days(args.seed + bed, growth=growth)
+        history = bed_over_days(args.seed + bed, bed_config, growth)
         found = [detect_scan(model, scan.points.astype(np.float64), args.readings) for scan in history.scans]
         scans = [Scan(s.time_s, s.points.astype(np.float64), caps, f"day {s.day}")
                  for s, caps in zip(history.scans, found)]
@@ -147,15 +161,15 @@ def main() -> None:
                 forecasts.append(track.ready_day is not None and abs(track.ready_day - truth) <= 1.0)
                 known_rate = ready_at_rate(track, history.growth_mm_per_day[cap_id], config.pick_mm)
                 forecasts_known_rate.append(abs(known_rate - truth) <= 1.0)
-        still = bed_over_days(args.seed + bed, growth=replace(growth, days=2, growth_mm_per_day=(0.0, 0.0),
-                                                              pick_probability=0.0))
+        still = bed_over_days(args.seed + bed, bed_config, replace(growth, days=2, growth_mm_per_day=(0.0, 0.0),
+                                                               pick_probability=0.0))
         twice = [Scan(s.time_s, s.points.astype(np.float64), detect_scan(model, s.points.astype(np.float64),
                                                                            args.readings)) for s in still.scans]
         for track in track_bed(twice, config=config).tracks:
             if len(track.scans) == 2:
                 repeat.append(abs(track.diameters_mm[1] - track.diameters_mm[0]))
     share = {name: hits / trials if trials else float("nan") for name, (hits, trials) in totals.items()}
-    print(f"{args.beds} beds x {args.days} daily scans, read {args.readings} times "
+    print(f"{args.beds} beds x {args.days} daily scans of {args.caps or 'template'} caps, read {args.readings} times "
           f"({time.perf_counter() - started:.0f} s)")
     print(f"  identity: kept {share['kept']:.1%} of {totals['kept'][1]} (target >= 98 %); wrong links "
           f"{share['wrong']:.1%} of {totals['wrong'][1]} (target < 2 %); appearing caps recognised "
