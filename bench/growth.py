@@ -2,9 +2,10 @@
 
 ``--beds`` beds (seeds from ``--seed``) are each scanned on ``--days`` days (``perception.synthetic.days``:
 caps grow at their own rates, new pins appear, ripe caps are picked, the rig is placed a little
-differently each day). Each scan is read as ``detect`` reads a cloud (the bed plane found, the shipped
-model, four readings) and the scans of a bed are tracked (``perception.track``). Detections are matched
-to the true caps of their scan (centres within half the true radius, at least 8 mm), and it prints:
+differently each day). Each scan is read as ``detect`` reads a cloud (``perception.detect.detect_cloud``:
+the bed plane and its up side found, the shipped model, four readings) and the scans of a bed are
+tracked (``perception.track``). Detections are matched to the true caps of their scan (centres within
+half the true radius, at least 8 mm), and it prints:
 - identity: of the true caps detected on two consecutive scans, the share that keep one track id; of
   the track's links from scan to scan, the share that join two different caps (or a false detection);
   of the caps that appear (a new pin) the share that start a new track; of the caps picked between two
@@ -42,17 +43,6 @@ from perception.synthetic.scene import SceneConfig  # noqa: E402
 
 CAP_FAMILIES = ("shallow-domes", "real-domes")
 """The suite's cap-shape families whose sizes a growing bed can take (the others fix the caps' sizes)."""
-
-
-def detect_scan(model, points: np.ndarray, readings: int):
-    """The caps of a scan in its own frame, as ``detect`` finds them."""
-    from common.geometry import transform_points
-    from fusion.bed import estimate_bed_frame
-    from perception.detect import detect_points
-
-    T_scan_bed = estimate_bed_frame(points)
-    bed_points = transform_points(np.linalg.inv(T_scan_bed), points)
-    return detect_points(model, bed_points, readings=readings).caps.moved(T_scan_bed)
 
 
 def truth_of(caps, scan) -> np.ndarray:
@@ -123,6 +113,7 @@ def main() -> None:
     parser.add_argument("--caps", choices=CAP_FAMILIES, help="cap shapes of this suite family (default: the template's)")
     args = parser.parse_args()
 
+    from perception.detect import detect_cloud
     from perception.synthetic.days import GrowthConfig, bed_over_days
     from perception.track import Scan, TrackConfig, track_bed
     from perception.weights import DEFAULT_WEIGHTS, load_weights
@@ -138,7 +129,7 @@ def main() -> None:
     started = time.perf_counter()
     for bed in tqdm(range(args.beds), desc="beds", unit="bed"):
         history = bed_over_days(args.seed + bed, bed_config, growth)
-        found = [detect_scan(model, scan.points.astype(np.float64), args.readings) for scan in history.scans]
+        found = [detect_cloud(model, scan.points.astype(np.float64), readings=args.readings) for scan in history.scans]
         scans = [Scan(s.time_s, s.points.astype(np.float64), caps, f"day {s.day}")
                  for s, caps in zip(history.scans, found)]
         labels = [truth_of(caps, scan) for caps, scan in zip(found, history.scans)]
@@ -163,8 +154,8 @@ def main() -> None:
                 forecasts_known_rate.append(abs(known_rate - truth) <= 1.0)
         still = bed_over_days(args.seed + bed, bed_config, replace(growth, days=2, growth_mm_per_day=(0.0, 0.0),
                                                                pick_probability=0.0))
-        twice = [Scan(s.time_s, s.points.astype(np.float64), detect_scan(model, s.points.astype(np.float64),
-                                                                           args.readings)) for s in still.scans]
+        twice = [Scan(s.time_s, s.points.astype(np.float64), detect_cloud(
+            model, s.points.astype(np.float64), readings=args.readings)) for s in still.scans]
         for track in track_bed(twice, config=config).tracks:
             if len(track.scans) == 2:
                 repeat.append(abs(track.diameters_mm[1] - track.diameters_mm[0]))

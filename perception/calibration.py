@@ -52,10 +52,11 @@ class Calibration:
         raw = np.asarray(raw, np.float64)
         return np.interp(raw, self.raw_scores, self.calibrated_scores) if self.raw_scores else raw
 
-    def applied(self, caps: Caps) -> Caps:
-        """The caps with calibrated scores and rim radii (heights and poses as measured)."""
+    def applied(self, caps: Caps, rim_radii: bool = True) -> Caps:
+        """The caps with calibrated scores and, when their radii are rim radii (the diameter line is fit
+        on those), calibrated radii; heights and poses as measured."""
         scores = None if caps.scores is None else self.scores(caps.scores)
-        if (self.diameter_scale, self.diameter_offset_mm) == (1.0, 0.0):
+        if not rim_radii or (self.diameter_scale, self.diameter_offset_mm) == (1.0, 0.0):
             return replace(caps, scores=scores)
         scales = np.array(caps.scales, np.float64, copy=True)
         rim_mm = 2000 * scales[:, :2]

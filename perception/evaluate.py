@@ -321,8 +321,7 @@ def scene_caps(model: MushroomNet, scene, methods, height: str, axis: str, zoom:
     found = {}
     for method in methods:
         caps = find_caps(prediction, model.config.voxel, ClusterConfig(method=method), height, axis, radius=radius)[1]
-        # the calibration is measured on the rim radius that detect gives
-        found[method] = model.calibration.applied(caps) if radius == "rim" else caps
+        found[method] = model.calibration.applied(caps, rim_radii=radius == "rim")
     return found, visible_truth(scene)
 
 

@@ -50,6 +50,8 @@ def test_applied_calibration_moves_rim_radii_and_scores_only():
     assert np.allclose(out.scores, np.interp([0.6, 0.9], (0.5, 1.0), (0.2, 0.99)))
     same = UNCALIBRATED.applied(caps)
     assert np.allclose(same.scales, caps.scales) and np.allclose(same.scores, caps.scores)
+    fitted = calibration.applied(caps, rim_radii=False)  # the ellipsoid's s: the line is not its
+    assert np.allclose(fitted.scales, caps.scales) and np.allclose(fitted.scores, out.scores)
 
 
 @pytest.mark.parametrize("fields, message", [
