@@ -3,9 +3,10 @@
 The command runs ``--runs`` times in a fresh process each (wall time, start-up and imports included);
 the median, the fastest and the slowest are printed, with ``mushroom-pose --help`` beside them for the
 start-up alone. One more run in a child process times each stage: the imports the command pulls in
-(numpy, torch, Open3D, scikit-learn, SciPy, the project), then its library calls (loading the weights
-and the cloud, the bed plane, the up side, each pass of the network, clustering, pose fit, writing),
-so the stages and their sum can be set against the wall time.
+(numpy, SciPy, scikit-learn, the project; it prints which of torch, Open3D, scikit-learn and SciPy
+the command loaded), then its library calls (loading the weights and the cloud, the bed plane, the up
+side, each pass of the network, clustering, pose fit, writing), so the stages and their sum can be
+set against the wall time.
 
 Usage: python bench/detect.py --cloud example_0.pcd [--runs 5] [--detect-arg=--readings --detect-arg=1]
 """
@@ -42,15 +43,16 @@ def timed(module, name, stage):
             marks.setdefault(stage, []).append(time.perf_counter() - began)
     setattr(owner, name, wrapper)
 
-for module in ("numpy", "torch", "open3d", "sklearn.cluster", "scipy.spatial"):
+for module in ("numpy", "scipy.spatial", "sklearn.cluster"):
     began = time.perf_counter()
     __import__(module)
     marks["import " + module] = [time.perf_counter() - began]
 began = time.perf_counter()
-import pipeline.cli, perception.detect, perception.evaluate, fusion.bed, pipeline.clouds
+import pipeline.cli, pipeline.commands.detect, perception.detect, perception.plan, fusion.bed, pipeline.clouds
 marks["import project"] = [time.perf_counter() - began]
 # each pass of the network, and the calls the command makes, by the name of its stage
 timed("perception.detect", "network_output", "network passes")
+timed("perception.detect", "voxel_features", "voxel normals and offsets (within the passes)")
 timed("pipeline.commands.detect", "load_model", "weights")
 timed("pipeline.clouds", "load_cloud", "load cloud")
 timed("fusion.bed", "estimate_bed_frame", "bed plane")
@@ -60,7 +62,8 @@ timed("perception.detect", "find_caps", "clustering and pose")
 timed("pipeline.commands.detect", "replace_file", "write detections")
 code = pipeline.cli.main(sys.argv[1:])
 marks["total in process"] = [time.perf_counter() - start]
-print(json.dumps({"code": code, "marks": marks}), file=sys.stderr)
+loaded = [name for name in ("torch", "open3d", "sklearn", "scipy") if name in sys.modules]
+print(json.dumps({"code": code, "marks": marks, "loaded": loaded}), file=sys.stderr)
 '''
 
 
@@ -76,13 +79,14 @@ def wall_times(command: list[str], runs: int) -> list[float]:
     return seconds
 
 
-def stage_split(detect: list[str]) -> dict[str, list[float]]:
-    """Seconds per stage of one ``detect`` run in a child process (``STAGE_TIMER``)."""
+def stage_split(detect: list[str]) -> tuple[dict[str, list[float]], list[str]]:
+    """Seconds per stage of one ``detect`` run in a child process (``STAGE_TIMER``), and which of the
+    heavy libraries it loaded."""
     done = subprocess.run([sys.executable, "-c", STAGE_TIMER, *detect], cwd=REPO, capture_output=True, text=True)
     report = json.loads(done.stderr.strip().splitlines()[-1])
     if report["code"] != 0:
         sys.exit(f"detect failed in the timed run: {done.stderr.strip().splitlines()[-2:]}")
-    return report["marks"]
+    return report["marks"], report["loaded"]
 
 
 def main() -> None:
@@ -96,7 +100,7 @@ def main() -> None:
         detect = ["detect", cloud, "--out", str(Path(scratch) / "detections.json"), "--overwrite", *args.detect_arg]
         walls = wall_times([sys.executable, "-m", "pipeline.cli", *detect], args.runs)
         helps = wall_times([sys.executable, "-m", "pipeline.cli", "--help"], args.runs)
-        marks = stage_split(detect)
+        marks, loaded = stage_split(detect)
     print(f"detect {Path(cloud).name} {' '.join(args.detect_arg)}".rstrip())
     print(f"  wall, {args.runs} runs: median {statistics.median(walls):.2f} s (fastest {min(walls):.2f}, "
           f"slowest {max(walls):.2f})")
@@ -104,8 +108,9 @@ def main() -> None:
     print("  one run, by stage (s):")
     for stage, seconds in marks.items():
         calls = f" ({len(seconds)} calls)" if len(seconds) > 1 else ""
-        print(f"    {stage:40s} {sum(seconds):6.2f}{calls}")
+        print(f"    {stage:48s} {sum(seconds):6.2f}{calls}")
     imports = sum(sum(seconds) for stage, seconds in marks.items() if stage.startswith("import"))
+    print(f"  libraries the command loaded: {', '.join(loaded) or 'none of torch, Open3D, scikit-learn, SciPy'}")
     print(f"  imports {imports:.2f} s of {sum(marks['total in process']):.2f} s in process "
           "(passes of the network are counted once in 'network passes' and again within their stages)")
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 from typing import Callable
 
 import numpy as np
-import open3d as o3d
 
 
 CAMERA_RANGE = 3.0
@@ -38,11 +37,7 @@ def estimate_bed_frame(points: np.ndarray, distance: float = 0.008, seed: int = 
     if fit_points is not None and len(points) > fit_points:
         points = points[::len(points) // fit_points]
     start = points[::len(points) // RANSAC_POINTS] if len(points) > RANSAC_POINTS else points
-    o3d.utility.random.seed(seed)
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(start))
-    (a, b, c, d), _ = cloud.segment_plane(distance, 3, 200)
-    normal, offset = _robust_plane(points, np.array([a, b, c]) / np.linalg.norm([a, b, c]),
-                                   d / np.linalg.norm([a, b, c]), robust_scale)
+    normal, offset = _robust_plane(points, *ransac_plane(start, distance, seed), robust_scale)
     up = up_side(normal, points @ normal + offset, distance, normals, offset, centroid)
     origin = centroid - (centroid @ normal + offset) * normal
     x = np.array([1.0, 0.0, 0.0]) - up[0] * up
@@ -53,6 +48,34 @@ def estimate_bed_frame(points: np.ndarray, distance: float = 0.008, seed: int = 
     T[:3, :3] = np.stack([x, np.cross(up, x), up], 1)
     T[:3, 3] = origin
     return T
+
+
+RANSAC_TRIALS = 200
+"""Planes through three random points that RANSAC tries."""
+RANSAC_BLOCK = 20
+"""Trials scored together."""
+
+
+def ransac_plane(points: np.ndarray, distance: float, seed: int = 0) -> tuple[np.ndarray, float]:
+    """The unit normal and offset (n . p + offset = 0) of the plane through three of ``points`` that has
+    the most of them within ``distance``, of ``RANSAC_TRIALS`` tries drawn with ``seed``. Open3D's
+    ``segment_plane`` does the same; all trials in one array pass cost less than importing Open3D."""
+    triples = points[np.random.default_rng(seed).integers(0, len(points), (RANSAC_TRIALS, 3))]
+    normals = np.cross(triples[:, 1] - triples[:, 0], triples[:, 2] - triples[:, 0])
+    length = np.linalg.norm(normals, axis=1)
+    usable = length > 1e-12
+    if not usable.any():
+        raise ValueError("the points lie on a line or at one point, not on a bed")
+    normals = normals[usable] / length[usable, None]
+    offsets = -np.einsum("ij,ij->i", normals, triples[usable, 0])
+    inliers = np.empty(len(normals), np.int64)
+    across = np.ascontiguousarray(points.T)
+    for first in range(0, len(normals), RANSAC_BLOCK):  # blocks of trials: a few MB at a time
+        residual = normals[first:first + RANSAC_BLOCK] @ across
+        residual += offsets[first:first + RANSAC_BLOCK, None]
+        inliers[first:first + RANSAC_BLOCK] = np.count_nonzero(np.abs(residual, out=residual) <= distance, axis=1)
+    best = int(np.argmax(inliers))
+    return normals[best], float(offsets[best])
 
 
 TURN_EVIDENCE = 4.0
@@ -116,22 +139,28 @@ def _robust_plane(points: np.ndarray, normal: np.ndarray, offset: float, scale: 
     The refinement runs until the plane settles (moves less than ``settled``), and the plane is
     rounded to 1e-9 (a nanometre in the offset): from starts a few hundredths apart it then ends
     bit-identical unless a rounding step falls within the last 1e-13 of spread (about one run in a
-    thousand). This matters because Open3D's RANSAC searches in parallel threads and starts it up to
-    0.04 off from one run to the next on the same points, and a replay must fuse a session's clouds as
-    the run did.
+    thousand). So the plane does not hang on which points RANSAC drew to start it, and a replay fuses
+    a session's clouds as the run did.
     """
-    # weighted moments about one fixed point, in one pass over the points per step
+    # weighted moments about one fixed point, the coordinates as rows (3, N) so that each step is a few
+    # in-place passes and two matrix products over the points
     reference = points.mean(0)
-    centred = points - reference
+    centred = np.ascontiguousarray((points - reference).T)
     offset += float(normal @ reference)
     for _ in range(max_iterations):
-        residual = centred @ normal + offset
-        weight = np.clip(1.0 - (residual / scale) ** 2, 0.0, None) ** 2
+        weight = normal @ centred
+        weight += offset
+        weight *= 1.0 / scale
+        np.square(weight, out=weight)
+        np.subtract(1.0, weight, out=weight)
+        np.maximum(weight, 0.0, out=weight)
+        np.square(weight, out=weight)
         total = weight.sum()
         if total <= 0:
             break
-        mean = weight @ centred / total
-        scatter = (centred.T * weight) @ centred - total * np.outer(mean, mean)
+        weighted = centred * weight
+        mean = weighted.sum(1) / total
+        scatter = weighted @ centred.T - total * np.outer(mean, mean)
         fitted = np.linalg.eigh(scatter)[1][:, 0]
         fitted = fitted if fitted @ normal >= 0 else -fitted
         moved = max(float(np.abs(fitted - normal).max()), abs(offset + float(fitted @ mean)))

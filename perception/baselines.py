@@ -111,21 +111,22 @@ def network_features(model, points: np.ndarray, with_encoding: bool, zoom: float
     import torch
 
     from perception.detect import network_input
-    from perception.model import inference_model, voxel_features
+    from perception.model import inference_model
+    from perception.network import voxel_features
     from perception.sparse import SparseTensor
 
     zoom = model.inference_zoom if zoom is None else zoom
     coords, _, zoomed = network_input(zoom * np.asarray(points, np.float64), model.config.voxel)
     net = inference_model(model)
     with torch.no_grad():
-        inputs = torch.from_numpy(voxel_features(model.config, zoomed.numpy()))
-        features = net.features(SparseTensor(inputs, coords))
+        inputs = torch.from_numpy(voxel_features(model.config, zoomed))
+        features = net.features(SparseTensor(inputs, torch.from_numpy(coords)))
         columns = [features]
         if with_encoding:
             out = net.head(features)
             columns.append(torch.cat([torch.sigmoid(out[:, :1]), out[:, 1:4], out[:, 4:5].clamp(0, 1)], 1))
         data = torch.cat(columns, 1).double().numpy()
-    return zoomed.numpy() / zoom, np.ascontiguousarray(data.T)
+    return zoomed / zoom, np.ascontiguousarray(data.T)
 
 
 def _features(points: np.ndarray, normals: np.ndarray | None, config: TemplateMatching, model, spacing: float

@@ -5,16 +5,24 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field, replace
 
+from typing import TYPE_CHECKING, Union
+
 import numpy as np
-import torch
 
 from common.geometry import (cell_lookup, median_neighbour_distance, transform_points, turning_about_z,
                              voxel_representatives)
 from perception.cap import Caps
+from perception.inference import COORD_MAX, InferenceNet, voxelize
 from perception.instances import ClusterConfig, cluster
-from perception.model import LENGTH_UNIT, MushroomNet, inference_model, voxel_features
+from perception.network import LENGTH_UNIT, voxel_features
 from perception.pose import RADIUS_MODES, fit_caps, with_rim_radii
-from perception.sparse import COORD_MAX, SparseTensor, voxel_average, voxelize
+
+if TYPE_CHECKING:
+    from perception.model import MushroomNet
+
+Network = Union["MushroomNet", InferenceNet]
+"""A trained network as inference reads it: the numpy one the commands load (``perception.inference``),
+or the torch one that training validates as it goes."""
 
 
 
@@ -43,16 +51,41 @@ class SceneResult:
     timings_ms: dict = field(default_factory=dict)
 
 
-def network_input(points: np.ndarray, voxel: float, device: torch.device | str = "cpu"):
-    """Voxel coords, the point-to-voxel map and voxel centroids of a cloud (N, 3) in metres."""
-    coords, point_to_voxel = voxelize(torch.from_numpy(np.ascontiguousarray(points, np.float64)), voxel)
-    counts = torch.bincount(point_to_voxel, minlength=len(coords)).clamp_(min=1).double()
-    centroids = torch.zeros(len(coords), 3, dtype=torch.float64).index_add_(
-        0, point_to_voxel, torch.from_numpy(np.ascontiguousarray(points, np.float64))) / counts[:, None]
-    return coords.to(device), point_to_voxel, centroids
+def network_input(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Voxel coords (V, 4), the point-to-voxel map and voxel centroids of a cloud (N, 3) in metres."""
+    points = np.asarray(points, np.float64)
+    coords, point_to_voxel = voxelize(points, voxel)
+    return coords, point_to_voxel, voxel_average(points, point_to_voxel, len(coords))
 
 
-def at_training_density(model: MushroomNet, points: np.ndarray) -> np.ndarray:
+def voxel_average(values: np.ndarray, point_to_voxel: np.ndarray, voxels: int) -> np.ndarray:
+    """Mean of the values (N, C) of the points in each voxel -> (voxels, C)."""
+    counts = np.maximum(np.bincount(point_to_voxel, minlength=voxels), 1)
+    return np.stack([np.bincount(point_to_voxel, column, voxels) for column in values.T], 1) / counts[:, None]
+
+
+def network_outputs(model: Network, coords: np.ndarray, features: np.ndarray) -> np.ndarray:
+    """(V, out_channels) float64 network outputs on voxels ``coords`` with input ``features``, the
+    existence logit turned into a probability (by the sigmoid of the network's own library)."""
+    if isinstance(model, InferenceNet):
+        out = model(coords, features).astype(np.float64)
+        with np.errstate(over="ignore"):
+            out[:, 0] = 1.0 / (1.0 + np.exp(-out[:, 0]))
+        return out
+    import torch
+
+    from perception.model import inference_model
+    from perception.sparse import SparseTensor
+
+    device = next(model.parameters()).device
+    with torch.no_grad():
+        inputs = SparseTensor(torch.from_numpy(features).to(device), torch.from_numpy(coords).to(device))
+        out = inference_model(model)(inputs).double()
+        out[:, 0] = torch.sigmoid(out[:, 0])
+        return out.cpu().numpy()
+
+
+def at_training_density(model: Network, points: np.ndarray) -> np.ndarray:
     """Indices of the points the network reads: one per ``model.point_spacing`` cell when the cloud
     has over twice as many points as such cells (training beds have 1-1.5), else all of them."""
     if model.point_spacing:
@@ -96,7 +129,7 @@ def point_spacing(points: np.ndarray, samples: int = 5000) -> float:
     return median_neighbour_distance(points, queries=samples) / NEIGHBOUR_PER_SPACING
 
 
-def reading_zoom(model: MushroomNet, points: np.ndarray) -> float:
+def reading_zoom(model: Network, points: np.ndarray) -> float:
     """The zoom a cloud (at most training density, ``at_training_density``) is read at: the model's,
     lowered for a cloud sparser than the model's training beds. The network learnt caps from beds with
     a point per 3 mm; on sparser ones a cap's voxels are a gappy shell, and reading the cloud smaller
@@ -116,9 +149,9 @@ class Reading:
     kept: np.ndarray
     """Indices of the points read (``at_training_density``)."""
     zoom: float
-    coords: torch.Tensor
-    kept_to_voxel: torch.Tensor
-    zoomed_centroids: torch.Tensor
+    coords: np.ndarray
+    kept_to_voxel: np.ndarray
+    zoomed_centroids: np.ndarray
     output: tuple
     """``network_output``'s centroids, existence, centres and orientation values."""
 
@@ -128,8 +161,8 @@ class Reading:
         return int((self.output[1] > 0.5).sum())
 
 
-def reading_input(model: MushroomNet, points: np.ndarray, thin: bool = True,
-                  zoom: float | None = None) -> tuple[np.ndarray, float, torch.Tensor, torch.Tensor, torch.Tensor]:
+def reading_input(model: Network, points: np.ndarray, thin: bool = True,
+                  zoom: float | None = None) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
     """What the network's first reading of a non-empty cloud in the bed frame takes in: the points
     read, the zoom, their voxels, each read point's voxel and the voxels' zoomed centroids."""
     points = np.asarray(points, np.float64)
@@ -139,12 +172,10 @@ def reading_input(model: MushroomNet, points: np.ndarray, thin: bool = True,
     if not reach < grid:
         raise ValueError(f"the cloud reaches {reach:.3g} m from the bed origin, beyond the voxel grid's "
                          f"{grid:.0f} m: bring it near the origin")
-    device = next(model.parameters()).device
-    return kept, zoom, *network_input(zoom * points[kept], model.config.voxel, device)
+    return kept, zoom, *network_input(zoom * points[kept], model.config.voxel)
 
 
-@torch.no_grad()
-def first_reading(model: MushroomNet, points: np.ndarray, thin: bool = True, zoom: float | None = None,
+def first_reading(model: Network, points: np.ndarray, thin: bool = True, zoom: float | None = None,
                   read: tuple | None = None) -> Reading:
     """One pass of the network over a non-empty cloud in the bed frame, as ``predict`` reads it first;
     ``read`` is the cloud's ``reading_input`` when it was made already."""
@@ -153,8 +184,7 @@ def first_reading(model: MushroomNet, points: np.ndarray, thin: bool = True, zoo
                    network_output(model, coords, zoomed_centroids, zoom))
 
 
-@torch.no_grad()
-def predict(model: MushroomNet, points: np.ndarray, thin: bool = True,
+def predict(model: Network, points: np.ndarray, thin: bool = True,
             zoom: float | None = None, readings: int = LIVE_READINGS, first: Reading | None = None) -> VoxelPrediction:
     """The network's encoding for a cloud in the bed frame; ``point_to_voxel`` covers every input point.
 
@@ -181,32 +211,28 @@ def predict(model: MushroomNet, points: np.ndarray, thin: bool = True,
         existence, centers, orientation = _averaged_readings(model, points[kept], zoom, readings, first.kept_to_voxel,
                                                              (existence, centers, orientation))
     if len(kept) == len(points):
-        point_to_voxel = first.kept_to_voxel.numpy()
+        point_to_voxel = first.kept_to_voxel
     else:
-        point_to_voxel = _nearest_voxel(zoom * points, model.config.voxel, first.coords.cpu().numpy(),
-                                        first.zoomed_centroids.numpy())
-        point_to_voxel[kept] = first.kept_to_voxel.numpy()
+        point_to_voxel = _nearest_voxel(zoom * points, model.config.voxel, first.coords, first.zoomed_centroids)
+        point_to_voxel[kept] = first.kept_to_voxel
     return VoxelPrediction(centroids, existence, centers, orientation, point_to_voxel)
 
 
-@torch.no_grad()
-def network_output(model: MushroomNet, coords: torch.Tensor, zoomed_centroids: torch.Tensor, zoom: float):
+def network_output(model: Network, coords: np.ndarray, zoomed_centroids: np.ndarray, zoom: float):
     """The network on voxels of a cloud scaled by ``zoom`` (from ``network_input``), decoded in the
-    cloud's own metres: voxel centroids, existence, predicted cap centres, orientation values (numpy)."""
-    device = next(model.parameters()).device
-    features = torch.from_numpy(voxel_features(model.config, zoomed_centroids.numpy())).to(device)
-    out = inference_model(model)(SparseTensor(features, coords)).double().cpu()
-    centroids = zoomed_centroids.numpy() / zoom
+    cloud's own metres: voxel centroids, existence, predicted cap centres, orientation values."""
+    out = network_outputs(model, coords, voxel_features(model.config, zoomed_centroids))
+    centroids = zoomed_centroids / zoom
     encoding = model.config.encoding
-    centers = out[:, 1:4].numpy() * LENGTH_UNIT / zoom
+    centers = out[:, 1:4] * LENGTH_UNIT / zoom
     if encoding != "explicit-centre":
         centers += centroids
-    orientation = out[:, 4:7].numpy() if encoding == "explicit-orientation" else out[:, 4].clamp(0.0, 1.0).numpy()
-    return centroids, torch.sigmoid(out[:, 0]).numpy(), centers, orientation
+    orientation = out[:, 4:7] if encoding == "explicit-orientation" else np.clip(out[:, 4], 0.0, 1.0)
+    return centroids, out[:, 0], centers, orientation
 
 
-def _averaged_readings(model: MushroomNet, points: np.ndarray, zoom: float, readings: int,
-                       point_to_voxel: torch.Tensor, first: tuple) -> tuple:
+def _averaged_readings(model: Network, points: np.ndarray, zoom: float, readings: int,
+                       point_to_voxel: np.ndarray, first: tuple) -> tuple:
     """Existence, centres and orientation values of the voxels of ``point_to_voxel`` averaged over
     ``readings`` readings of ``points``: the first (``first``) as they are, each further one turned by
     another 360/readings degrees about the vertical through their centroid, its centres turned back.
@@ -217,14 +243,13 @@ def _averaged_readings(model: MushroomNet, points: np.ndarray, zoom: float, read
     total = np.column_stack(first)
     for k in range(1, readings):
         T_turned = turning_about_z(2 * np.pi * k / readings, pivot)
-        coords, turned_to_voxel, zoomed = network_input(zoom * transform_points(T_turned, points),
-                                                        model.config.voxel, next(model.parameters()).device)
+        coords, turned_to_voxel, zoomed = network_input(zoom * transform_points(T_turned, points), model.config.voxel)
         _, existence, centers, orientation = network_output(model, coords, zoomed, zoom)
         if orientation.ndim == 2:  # explicit axis vectors turn back with the centres
             orientation = orientation @ T_turned[:3, :3]
         turned_back = transform_points(np.linalg.inv(T_turned), centers.astype(np.float64))
         values = np.column_stack([existence, turned_back, orientation])
-        total += voxel_average(torch.from_numpy(values[turned_to_voxel.numpy()]), point_to_voxel, count).numpy()
+        total += voxel_average(values[turned_to_voxel], point_to_voxel, count)
     mean = total / readings
     return mean[:, 0], mean[:, 1:4], mean[:, 4] if first[2].ndim == 1 else mean[:, 4:]
 
@@ -290,7 +315,7 @@ def find_caps(prediction: VoxelPrediction, voxel: float, cluster_config: Cluster
     return labels, fit
 
 
-def detect_points(model: MushroomNet, points: np.ndarray, cluster_config: ClusterConfig = ClusterConfig(),
+def detect_points(model: Network, points: np.ndarray, cluster_config: ClusterConfig = ClusterConfig(),
                   zoom: float | None = None, readings: int = LIVE_READINGS, first: Reading | None = None) -> SceneResult:
     """Caps in a cloud already in the bed frame (z up, metres), read ``readings`` times (``predict``) at
     ``zoom`` (default: the model's); ``first`` is its first reading when one was made already."""
@@ -306,7 +331,7 @@ def detect_points(model: MushroomNet, points: np.ndarray, cluster_config: Cluste
                        timings_ms=timings)
 
 
-def detect_up_side(model: MushroomNet, points: np.ndarray, T_input_bed: np.ndarray,
+def detect_up_side(model: Network, points: np.ndarray, T_input_bed: np.ndarray,
                    cluster_config: ClusterConfig = ClusterConfig(), zoom: float | None = None,
                    readings: int = LIVE_READINGS) -> tuple[np.ndarray, np.ndarray, SceneResult]:
     """T_input_bed turned to the side of the bed plane its caps say is up (``fusion.bed.side_with_caps``),
@@ -336,7 +361,7 @@ def detect_up_side(model: MushroomNet, points: np.ndarray, T_input_bed: np.ndarr
     return T_input_bed, bed_points, detect_points(model, bed_points, cluster_config, zoom, readings, first)
 
 
-def detect_cloud(model: MushroomNet, points: np.ndarray, cluster_config: ClusterConfig = ClusterConfig(),
+def detect_cloud(model: Network, points: np.ndarray, cluster_config: ClusterConfig = ClusterConfig(),
                  readings: int = FILE_READINGS) -> Caps:
     """The caps of a bed's cloud in its own frame, found as ``mushroom-pose detect`` finds them: the bed
     plane (``fusion.bed.estimate_bed_frame``), its up side by the caps, ``readings`` readings."""

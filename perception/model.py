@@ -11,115 +11,14 @@ from __future__ import annotations
 
 import copy
 import weakref
-from dataclasses import asdict, dataclass, replace
 
-import numpy as np
 import torch
 from torch import nn
 
 from perception.calibration import UNCALIBRATED
+from perception.network import INFERENCE_ZOOM, NetworkConfig
 from perception.sparse import (SparseBatchNorm, SparseConv3d, SparseConvTranspose3d, SparseReLU, SparseTensor,
                                SubmanifoldConv3d, sparse_cat)
-
-LENGTH_UNIT = 0.1
-"""Residual centres are predicted, and their loss measured, in decimetres: the paper's x100 weight on
-their squared error then balances the other two terms."""
-
-INFERENCE_ZOOM = 1.05
-"""The zoom new models are read at when training names none (weights record their own, the shipped one
-1.2): the network reads the cloud scaled up by it, so small caps span more voxels, within training's
-scale jitter. Clustering stays in the cloud's own metres."""
-
-
-ENCODINGS = ("implicit", "explicit-centre", "explicit-orientation")
-
-
-@dataclass(frozen=True)
-class NetworkConfig:
-    channels: tuple[int, int, int, int] = (32, 64, 128, 256)
-    up_channels: tuple[int, int, int, int] = (64, 64, 64, 128)
-    first_kernel: int = 7
-    head_hidden: tuple[int, int] = (64, 32)
-    dropout: float = 0.1
-    voxel: float = 0.0045
-    """Voxel edge in metres."""
-    normals: bool = False
-    """Besides the constant 1, give each voxel the unit normal of the surface through the voxel
-    centroids (oriented to +z, the bed normal): tilt shows in normals long before it shows in the
-    occupancy of 4.5 mm voxels."""
-    offsets: bool = False
-    """Also give the centroid's place inside its voxel, scaled to [-1, 1) per axis: voxels drop where
-    in the 4.5 mm cell a point lies, and a small cap spans only 4-6 voxels."""
-    encoding: str = "implicit"
-    """What the head predicts per voxel besides existence: ``implicit`` (the paper's: the residual to
-    the cap centre and the orientation value), or one of the paper's Table 2 ablations,
-    ``explicit-centre`` (the cap centre itself) or ``explicit-orientation`` (the cap's unit axis)."""
-
-    def __post_init__(self) -> None:
-        if self.encoding not in ENCODINGS:
-            raise ValueError(f"unknown encoding {self.encoding!r}; use one of {', '.join(ENCODINGS)}")
-
-    @property
-    def in_channels(self) -> int:
-        return 1 + 3 * self.normals + 3 * self.offsets
-
-    @property
-    def out_channels(self) -> int:
-        """Existence, centre (3), orientation value (1) or axis (3)."""
-        return 7 if self.encoding == "explicit-orientation" else 5
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @staticmethod
-    def from_dict(values: dict) -> "NetworkConfig":
-        values = dict(values)
-        for key in ("channels", "up_channels", "head_hidden"):
-            values[key] = tuple(values[key])
-        return NetworkConfig(**values)
-
-
-NETWORK_PRESETS = {
-    "fcgf": NetworkConfig(),
-    "slim": NetworkConfig(channels=(32, 48, 64, 96), up_channels=(48, 48, 64, 64), first_kernel=3),
-    "slim-n": NetworkConfig(channels=(32, 48, 64, 96), up_channels=(48, 48, 64, 64), first_kernel=3, normals=True),
-    "slim-no": NetworkConfig(channels=(32, 48, 64, 96), up_channels=(48, 48, 64, 64), first_kernel=3, normals=True,
-                             offsets=True),
-}
-# slim-no with the coarser levels (stride 2 to 8) wider and the full-resolution ones unchanged
-NETWORK_PRESETS["wide-no"] = replace(NETWORK_PRESETS["slim-no"], channels=(32, 64, 128, 192), up_channels=(48, 48, 96, 128))
-# the paper's Table 2 ablations: slim-no predicting the centre or the axis explicitly
-NETWORK_PRESETS["slim-no-explicit-centre"] = replace(NETWORK_PRESETS["slim-no"], encoding="explicit-centre")
-NETWORK_PRESETS["slim-no-explicit-orientation"] = replace(NETWORK_PRESETS["slim-no"], encoding="explicit-orientation")
-# slim-no with a 5^3 first convolution, which reaches more of a sparse cap's surface voxels than 3^3
-NETWORK_PRESETS["slim-no-k5"] = replace(NETWORK_PRESETS["slim-no"], first_kernel=5)
-# slim-no with 32 channels in the full-resolution up block instead of 48: that block's two 3^3
-# convolutions on every voxel take a third of slim-no's time
-NETWORK_PRESETS["lean-no"] = replace(NETWORK_PRESETS["slim-no"], up_channels=(48, 32, 64, 64))
-
-
-def voxel_features(config: NetworkConfig, centroids: np.ndarray) -> np.ndarray:
-    """(V, in_channels) float32 network input for voxels with these centroids (bed frame, metres)."""
-    centroids = np.asarray(centroids, np.float64)
-    columns = [np.ones((len(centroids), 1), np.float32)]
-    if config.normals:
-        columns.append(_oriented_normals(config, centroids))
-    if config.offsets:
-        cell = centroids / config.voxel
-        columns.append((2.0 * (cell - np.floor(cell)) - 1.0).astype(np.float32))
-    return np.hstack(columns)
-
-
-def _oriented_normals(config: NetworkConfig, centroids: np.ndarray) -> np.ndarray:
-    import open3d as o3d
-
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(centroids))
-    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3 * config.voxel, max_nn=16))
-    normals = np.asarray(cloud.normals, np.float32)
-    if len(normals) != len(centroids):
-        normals = np.tile(np.float32([0, 0, 1]), (len(centroids), 1))
-    normals *= np.where(normals[:, 2:3] < 0, -1.0, 1.0).astype(np.float32)
-    return normals
 
 
 class ResBlock(nn.Module):

@@ -9,7 +9,8 @@ kernel offset, the (input row, output row) pairs it connects; a convolution is, 
 gather -> matmul -> ``index_add_``. Maps are kept in a cache shared by all tensors derived from one
 input, so each is built once per forward pass. Downsampling is Minkowski-style: the output voxels are
 the occupied parent voxels, and the transposed conv runs the same map backwards. Only standard torch
-ops are used, so everything runs on the device of the inputs.
+ops are used, so everything runs on the device of the inputs. Training runs these; a trained network
+runs in numpy (``perception.inference``, the same maps and layers), so commands start without torch.
 """
 
 from __future__ import annotations
@@ -17,16 +18,10 @@ from __future__ import annotations
 import itertools
 import math
 
-import numpy as np
 import torch
 from torch import nn
 
-BATCH_BITS, COORD_BITS = 15, 16
-COORD_MARGIN = 8
-"""Room kept inside each coordinate field, so a neighbour's key is the voxel's key plus a constant."""
-COORD_MIN = -(1 << (COORD_BITS - 1)) + COORD_MARGIN
-COORD_MAX = (1 << (COORD_BITS - 1)) - 1 - COORD_MARGIN
-BATCH_MAX = (1 << BATCH_BITS) - 1
+from perception.inference import BATCH_MAX, COORD_BITS, COORD_MAX, COORD_MIN, DENSE_TABLE_CELLS, TABLE_MARGIN
 
 KernelMap = list[tuple[torch.Tensor | None, torch.Tensor | None]]
 """Per kernel offset, (in_idx, out_idx) int64 rows it connects; (None, None) means the identity."""
@@ -98,17 +93,6 @@ def _sorted_keys(x: SparseTensor) -> tuple[torch.Tensor, torch.Tensor]:
     if entry is None:
         entry = x.cache[("keys", x.stride)] = torch.sort(pack(x.coords))
     return entry
-
-
-DENSE_TABLE_CELLS = 1 << 23
-"""Largest bounding box (cells, margin included) looked up in a dense table: 64 MB of int64 rows. A 0.5 m
-bed at 4.3 mm voxels (zoom 1.05) and 0.1 m of relief spans about 0.4 M cells, at 3.75 mm (zoom 1.2, the
-shipped model's) about 0.6 M; a fused cloud with a stray point metres away falls back to sorted keys,
-which build the kernel maps more slowly (docs/DESIGN.md section 9; ``tests/test_sparse.py`` holds both
-to the same maps)."""
-TABLE_MARGIN = 4
-"""Cells of room around the box: a stride-2 map asks from doubled parents up to one cell outside the
-fine voxels, plus its offsets. Queries that reach outside the padded box use the sorted keys."""
 
 
 def _dense_table(voxels: SparseTensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor] | None:
@@ -344,31 +328,3 @@ def sparse_cat(a: SparseTensor, b: SparseTensor) -> SparseTensor:
     if a.stride != b.stride or not (a.coords is b.coords or torch.equal(a.coords, b.coords)):
         raise ValueError(f"sparse_cat needs the same voxels: {a} vs {b}")
     return a.replace_features(torch.cat([a.features, b.features], 1))
-
-
-def voxelize(points: torch.Tensor | np.ndarray, voxel_size: float,
-             batch_index: torch.Tensor | np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Occupied voxels of ``points`` (N, 3): coords (V, 4) sorted, and point_to_voxel (N,).
-
-    ``coords[point_to_voxel[n]]`` is the voxel of point n, so per-point labels and features can be
-    moved to voxels (``voxel_average``) and predictions back to points.
-    """
-    points = torch.as_tensor(points)
-    if points.dim() != 2 or points.shape[1] != 3:
-        raise ValueError(f"points must be (N, 3), got {tuple(points.shape)}")
-    if voxel_size <= 0:
-        raise ValueError(f"voxel_size must be positive, got {voxel_size}")
-    grid = torch.floor(points.double() / voxel_size).long()
-    batch = (torch.zeros(len(points), dtype=torch.int64, device=points.device) if batch_index is None
-             else torch.as_tensor(batch_index, device=points.device).long())
-    keys = pack(torch.cat([batch[:, None], grid], 1))
-    unique_keys, point_to_voxel = torch.unique(keys, return_inverse=True)
-    return unpack(unique_keys), point_to_voxel
-
-
-def voxel_average(point_features: torch.Tensor, point_to_voxel: torch.Tensor, num_voxels: int) -> torch.Tensor:
-    """Mean of the features (N, C) of the points in each voxel -> (num_voxels, C)."""
-    total = point_features.new_zeros(num_voxels, point_features.shape[1])
-    total.index_add_(0, point_to_voxel, point_features)
-    counts = torch.bincount(point_to_voxel, minlength=num_voxels).clamp_(min=1)
-    return total / counts.to(total.dtype)[:, None]

@@ -29,8 +29,8 @@ from common.geometry import turn_about_z
 from fusion.integrate import IntegrationConfig
 from perception.cap import cap_rotation
 from perception.encoding import encode
-from perception.model import (INFERENCE_ZOOM, LENGTH_UNIT, NETWORK_PRESETS, MushroomNet,
-                              NetworkConfig, voxel_features)
+from perception.model import MushroomNet
+from perception.network import INFERENCE_ZOOM, LENGTH_UNIT, NETWORK_PRESETS, NetworkConfig, voxel_features
 from perception.sparse import SparseTensor
 from perception.synthetic.scene import SceneConfig, generate_scene
 from perception.weights import (UNRECORDED_ZOOM, WeightsWriteError, all_finite, load_weights, provenance, save_weights,
@@ -312,7 +312,7 @@ def voxel_targets(sample: dict, voxel: float):
     (0 off caps; 1 / the voxels of the voxel's cap, scaled to mean 1 over cap voxels)."""
     from perception.detect import network_input
 
-    coords, point_to_voxel, centroids = network_input(sample["points"], voxel)
+    coords, point_to_voxel, centroids = map(torch.from_numpy, network_input(sample["points"], voxel))
     counts = torch.bincount(point_to_voxel, minlength=len(coords)).clamp_(min=1).float()[:, None]
 
     def mean(values: np.ndarray) -> torch.Tensor:
@@ -349,7 +349,7 @@ def explicit_targets(encoding: str, sample: dict, voxel: float, existence: torch
     if encoding == "explicit-centre":
         centre = residual + torch.from_numpy(centroids).float() / LENGTH_UNIT
         return torch.where(on_cap, centre, torch.zeros(1)), orientation
-    _, point_to_voxel, _ = network_input(sample["points"], voxel)
+    point_to_voxel = torch.from_numpy(network_input(sample["points"], voxel)[1])
     axis = torch.zeros(len(existence), 3).index_add_(0, point_to_voxel, torch.from_numpy(sample["axis"]).float())
     axis = axis / axis.norm(dim=1, keepdim=True).clamp(min=1e-9)
     return residual, torch.where(on_cap, axis, torch.zeros(1))

@@ -9,12 +9,16 @@ import io
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from common.files import write_atomically
 
 if TYPE_CHECKING:
     import torch
 
+    from perception.inference import InferenceNet
     from perception.model import MushroomNet
+    from perception.network import NetworkConfig
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "default.pt"
 """The shipped model."""
@@ -65,17 +69,15 @@ def load_weights(path: Path, device: str = "cpu") -> tuple[MushroomNet, dict]:
     """A trained network and its metadata from a weights file (model.pt) or a checkpoint."""
     import torch
 
-    from perception.calibration import Calibration
-    from perception.model import MushroomNet, NetworkConfig
+    from perception.model import MushroomNet
 
     try:
         state = torch.load(path, map_location=device, weights_only=False)
-        network = NetworkConfig.from_dict(state["network"])
-        spacing = state.get("point_spacing") or scene_spacing(state.get("train_config") or {})
-        model = MushroomNet(network, point_spacing=spacing,
-                            inference_zoom=state.get("inference_zoom", UNRECORDED_ZOOM)).to(device)
+        network, recorded = _recorded(state)
+        model = MushroomNet(network, point_spacing=recorded["point_spacing"],
+                            inference_zoom=recorded["inference_zoom"]).to(device)
         model.load_state_dict(state["model"])
-        model.calibration = Calibration.from_dict(state.get("calibration"))
+        model.calibration = recorded["calibration"]
     except FileNotFoundError:
         raise
     except Exception as error:
@@ -83,7 +85,86 @@ def load_weights(path: Path, device: str = "cpu") -> tuple[MushroomNet, dict]:
     if not all_finite(model):
         raise ValueError(f"{path} holds weights that are not finite numbers (a training run that diverged)")
     model.eval()
-    return model, {k: v for k, v in state.items() if k not in ("model", "optimizer", "scheduler", "torch_rng")}
+    return model, _metadata(state)
+
+
+def load_inference_net(path: Path) -> tuple[InferenceNet, dict]:
+    """A trained network for inference in numpy (``perception.inference``) and its metadata, from a
+    weights file or a checkpoint, read without torch; the same refusals as ``load_weights``."""
+    from perception.inference import InferenceNet
+
+    try:
+        state = read_payload(path)
+        network, recorded = _recorded(state)
+        values = state["model"]
+        finite = all(np.isfinite(value).all() for value in values.values() if value.dtype.kind == "f")
+        net = InferenceNet.from_state_dict(network, values, **recorded)
+    except FileNotFoundError:
+        raise
+    except Exception as error:
+        raise ValueError(f"{path} is not a mushroom-pose weights file ({type(error).__name__})") from None
+    if not finite:
+        raise ValueError(f"{path} holds weights that are not finite numbers (a training run that diverged)")
+    return net, _metadata(state)
+
+
+def _recorded(state: dict) -> tuple[NetworkConfig, dict]:
+    """The network config of a weights payload, and what it records about reading it."""
+    from perception.calibration import Calibration
+    from perception.network import NetworkConfig
+
+    spacing = state.get("point_spacing") or scene_spacing(state.get("train_config") or {})
+    return NetworkConfig.from_dict(state["network"]), {
+        "point_spacing": spacing, "inference_zoom": state.get("inference_zoom", UNRECORDED_ZOOM),
+        "calibration": Calibration.from_dict(state.get("calibration"))}
+
+
+def _metadata(state: dict) -> dict:
+    """A weights payload without its tensors and training state."""
+    return {k: v for k, v in state.items() if k not in ("model", "optimizer", "scheduler", "torch_rng")}
+
+
+STORAGE_DTYPES = {"FloatStorage": np.float32, "DoubleStorage": np.float64, "HalfStorage": np.float16,
+                  "LongStorage": np.int64, "IntStorage": np.int32, "ShortStorage": np.int16,
+                  "CharStorage": np.int8, "ByteStorage": np.uint8, "BoolStorage": np.bool_}
+"""numpy's dtype for each torch storage type a weights file can hold."""
+
+
+def read_payload(path: Path) -> dict:
+    """What ``write_payload`` wrote (torch's zip format: a pickle whose tensors point at raw little-endian
+    storages beside it), read without torch: tensors come back as numpy arrays. Only plain Python
+    values, ordered dicts and tensors are unpickled; anything else in the file is refused."""
+    import pickle
+    import zipfile
+    from collections import OrderedDict
+
+    with zipfile.ZipFile(path) as archive:
+        pickled = next(name for name in archive.namelist() if name.endswith("/data.pkl"))
+        folder = pickled[:-len("data.pkl")]
+        if archive.read(folder + "byteorder").strip() not in (b"", b"little"):
+            raise ValueError("weights stored big-endian")
+
+        def rebuild(storage: np.ndarray, offset: int, size: tuple, stride: tuple, *_) -> np.ndarray:
+            if not size:
+                return storage[offset].copy()
+            strides = tuple(step * storage.itemsize for step in stride)
+            return np.lib.stride_tricks.as_strided(storage[offset:], size, strides).copy()
+
+        class Unpickler(pickle.Unpickler):
+            def find_class(self, module: str, name: str):
+                if (module, name) == ("torch._utils", "_rebuild_tensor_v2"):
+                    return rebuild
+                if module == "torch" and name in STORAGE_DTYPES:
+                    return STORAGE_DTYPES[name]
+                if (module, name) == ("collections", "OrderedDict"):
+                    return OrderedDict
+                raise pickle.UnpicklingError(f"{module}.{name} is no part of a weights file")
+
+            def persistent_load(self, pid):
+                _, dtype, key, _, _ = pid
+                return np.frombuffer(archive.read(f"{folder}data/{key}"), dtype)
+
+        return Unpickler(io.BytesIO(archive.read(pickled))).load()
 
 
 def provenance(path: Path, meta: dict) -> dict:

@@ -16,7 +16,7 @@ def rrd_entity_rows(path) -> collections.Counter:
 
 def tiny_network_config():
     """A network small enough for fast tests (the real presets take seconds per scene)."""
-    from perception.model import NetworkConfig
+    from perception.network import NetworkConfig
 
     return NetworkConfig(channels=(8, 8, 8, 8), up_channels=(8, 8, 8, 8), first_kernel=3, head_hidden=(8, 8))
 

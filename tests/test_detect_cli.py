@@ -448,7 +448,7 @@ def test_detect_grades_caps_by_the_growers_table(tmp_path, scene_ply):
 
 def test_detect_shown_in_no_viewer_loads_no_viewer(tmp_path, scene_ply):
     """rerun-sdk is loaded only by a command shown in Rerun: without --rrd, --spawn or --serve, detect
-    pays neither its import nor its exit."""
+    pays neither its import nor its exit; and it runs its network in numpy, without torch."""
     import sys
 
     ply, _ = scene_ply
@@ -456,5 +456,5 @@ def test_detect_shown_in_no_viewer_loads_no_viewer(tmp_path, scene_ply):
             f"code = main(['detect', {str(ply)!r}, '--out', {str(tmp_path / 'd.json')!r}]); "
             "print(code, sorted(m for m in ('rerun', 'torch') if m in sys.modules))")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert result.stdout.strip().splitlines()[-1] == "0 ['torch']", result.stderr
+    assert result.stdout.strip().splitlines()[-1] == "0 []", result.stderr
     assert json.loads((tmp_path / "d.json").read_text())["mushrooms"]

@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from perception.detect import network_input, network_output
-from perception.model import LENGTH_UNIT, NETWORK_PRESETS, MushroomNet
+from perception.model import MushroomNet
+from perception.network import LENGTH_UNIT, NETWORK_PRESETS
 from perception.pose import fit_caps
 from perception.train import TrainConfig, augmented_sample, explicit_targets, voxel_targets
 
@@ -29,7 +30,7 @@ def sample():
 
 def _voxel_caps(sample):
     """Each voxel's cap when all its points belong to one cap, else -1."""
-    _, point_to_voxel, _ = network_input(sample["points"], VOXEL)
+    point_to_voxel = torch.from_numpy(network_input(sample["points"], VOXEL)[1])
     voxels = int(point_to_voxel.max()) + 1
     instance = torch.from_numpy(sample["instance"])
     high = torch.full((voxels,), -1).scatter_reduce(0, point_to_voxel, instance, "amax")
@@ -77,10 +78,11 @@ def test_the_network_decodes_each_encoding(encoding, orientation_shape):
     got_centroids, existence, centers, orientation = network_output(model, coords, centroids, 1.0)
     assert orientation.reshape(len(got_centroids), -1).shape[1] == orientation_shape[0]
     with torch.no_grad():
-        from perception.model import voxel_features
+        from perception.network import voxel_features
         from perception.sparse import SparseTensor
 
-        raw = model(SparseTensor(torch.from_numpy(voxel_features(model.config, centroids.numpy())), coords)).double()
+        raw = model(SparseTensor(torch.from_numpy(voxel_features(model.config, centroids)),
+                                 torch.from_numpy(coords))).double()
     # the centre is the raw output itself with explicit-centre, the voxel centroid plus it otherwise
     offset = 0 if encoding == "explicit-centre" else got_centroids
     assert np.allclose(centers, offset + raw[:, 1:4].numpy() * LENGTH_UNIT, atol=1e-6)

@@ -81,7 +81,7 @@ def test_evaluation_on_ray_gives_the_local_metrics(local_ray):
 def test_a_run_trained_on_beds_made_by_ray_tasks_is_the_local_run(tmp_path, local_ray, monkeypatch):
     import torch
 
-    from perception.model import NETWORK_PRESETS, NetworkConfig
+    from perception.network import NETWORK_PRESETS, NetworkConfig
     from perception.synthetic.scene import SceneConfig
     from perception.train import TrainConfig, train
     from perception.weights import load_weights

@@ -13,7 +13,8 @@ from common.geometry import voxel_representatives
 from helpers import tiny_network_config
 from perception.detect import detect_points, predict
 from perception.instances import ClusterConfig
-from perception.model import ENCODINGS, MushroomNet
+from perception.model import MushroomNet
+from perception.network import ENCODINGS
 from perception.synthetic.scene import SceneConfig, generate_scene
 
 ZOOM = 1.1

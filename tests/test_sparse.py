@@ -6,7 +6,7 @@ import torch
 
 from perception.sparse import (COORD_MAX, COORD_MIN, SparseConv3d, SparseConvTranspose3d, SparseTensor,
                                SubmanifoldConv3d, downsample_map, pack, sparse_cat, sparse_conv,
-                               submanifold_map, transpose_map, unpack, voxel_average, voxelize)
+                               submanifold_map, transpose_map)
 
 spc = pytest.importorskip("spconv.pytorch")
 spconv_ops = pytest.importorskip("spconv.pytorch.ops")
@@ -218,33 +218,11 @@ def test_no_wraparound_at_the_edges_of_the_packable_range():
     assert sum(len(i) for i, _ in downsample_map(x, 3)) == len(coords)
 
 
-def test_voxelize_keeps_every_point_in_its_voxel():
-    g = torch.Generator().manual_seed(7)
-    points = torch.rand(5000, 3, generator=g, dtype=torch.float64) * 0.2 - 0.1
-    batch = torch.randint(0, 3, (5000,), generator=g)
-    coords, point_to_voxel = voxelize(points, 0.01, batch)
-    assert coords.dtype == point_to_voxel.dtype == torch.int64
-    assert len(torch.unique(coords, dim=0)) == len(coords)
-    assert torch.equal(coords[point_to_voxel, 0], batch)
-    assert torch.equal(coords[point_to_voxel, 1:], torch.floor(points / 0.01).long())
-    assert torch.equal(unpack(pack(coords)), coords)
-    assert torch.equal(torch.unique(point_to_voxel), torch.arange(len(coords)))
-
-    mean = voxel_average(points, point_to_voxel, len(coords))
-    for v in (0, len(coords) // 2, len(coords) - 1):
-        torch.testing.assert_close(mean[v], points[point_to_voxel == v].mean(0))
-
-    numpy_coords, _ = voxelize(points.numpy(), 0.01)
-    assert (numpy_coords[:, 0] == 0).all()
-
-
 def test_bad_input_raises_clearly():
     with pytest.raises(ValueError, match="packable range"):
         pack(torch.tensor([[0, COORD_MAX + 1, 0, 0]]))
     with pytest.raises(ValueError, match="packable range"):
         pack(torch.tensor([[-1, 0, 0, 0]]))
-    with pytest.raises(ValueError, match="packable range"):
-        voxelize(np.array([[0.0, 0.0, 1000.0]]), 0.01)
     with pytest.raises(ValueError, match="int64"):
         SparseTensor(torch.zeros(1, 2), torch.zeros(1, 4, dtype=torch.int32))
     with pytest.raises(ValueError, match=r"\(N, 4\)"):

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from perception.model import INFERENCE_ZOOM, LENGTH_UNIT, NETWORK_PRESETS, MushroomNet, NetworkConfig
+from perception.model import MushroomNet
+from perception.network import INFERENCE_ZOOM, LENGTH_UNIT, NETWORK_PRESETS, NetworkConfig
 from perception.sparse import SparseTensor
 from perception.synthetic.scene import SceneConfig
 from perception.train import (TrainConfig, TrainingError, augmented_sample, iteration_seed, loss_terms, scene_config,
@@ -305,7 +306,7 @@ def test_batch_norms_folded_for_inference_give_the_same_outputs_and_follow_train
 
 def test_normal_features_follow_the_surface_and_point_up():
     from perception.cap import cap_rotation
-    from perception.model import voxel_features
+    from perception.network import voxel_features
 
     rng = np.random.default_rng(0)
     rotation = cap_rotation(0.4, -0.3)
@@ -317,7 +318,7 @@ def test_normal_features_follow_the_surface_and_point_up():
 
 
 def test_offset_features_place_each_centroid_inside_its_voxel():
-    from perception.model import voxel_features
+    from perception.network import voxel_features
 
     config = NetworkConfig(offsets=True)
     # a voxel's lower corner maps to -1, its middle to 0 and a point just below the next voxel to almost 1

@@ -289,9 +289,10 @@ def model_path(path: str | None) -> Path:
     return Path(path) if path else DEFAULT_WEIGHTS
 
 
-def load_model(path: str | None):
-    """The model and metadata of the weights ``--model`` names (default: the shipped model)."""
-    from perception.weights import load_weights
+def load_model(path: str | None, in_torch: bool = True):
+    """The model and metadata of the weights ``--model`` names (default: the shipped model): the torch
+    network, or with ``in_torch=False`` the numpy one (``perception.inference``), read without torch."""
+    from perception.weights import load_inference_net, load_weights
 
     weights = model_path(path)
     if not weights.exists():
@@ -299,7 +300,7 @@ def load_model(path: str | None):
             raise CliError(f"model file {weights} does not exist")
         raise CliError(f"no shipped model at {weights}: train one (mushroom-pose train) and pass --model")
     try:
-        return load_weights(weights)
+        return load_weights(weights) if in_torch else load_inference_net(weights)
     except ValueError as error:
         raise CliError(str(error)) from None
 

@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     if args.units == "auto" and cloud.units != "m":
         print(f"note: {args.cloud} is read in {UNIT_NAMES[cloud.units]} (its points lie {cloud.spacing:.3g} units "
               f"apart over {cloud.extent:.3g}); give --units to say otherwise", file=sys.stderr)
-    model, _ = load_model(args.model)
+    model, _ = load_model(args.model, in_torch=False)
     points = cloud.points
     _refuse_unless_forced(args, cloud.unit_doubt)
     T_input_bed, frame = _bed_frame(args, cloud)

@@ -109,7 +109,7 @@ def train_config(args: argparse.Namespace):
 
 def _check(args: argparse.Namespace) -> None:
     """Refuse flags that parse one by one but not together."""
-    from perception.model import NETWORK_PRESETS
+    from perception.network import NETWORK_PRESETS
 
     if args.network not in NETWORK_PRESETS:
         raise CliError(f"unknown network {args.network!r}; choose one of {sorted(NETWORK_PRESETS)}")
