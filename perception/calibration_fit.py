@@ -11,7 +11,7 @@ from perception.calibration import CALIBRATION_SEED, UNCALIBRATED, Calibration, 
 from perception.cap import Caps
 
 DIAMETER_FAMILIES = ("shallow-domes", "real-domes", "spacing-1mm", "spacing-5mm", "spacing-8mm", "single-view",
-                     "fused-views", "oak-stereo", "tilted-uneven", "touching-clusters", "casing-soil")
+                     "fused-views", "oak-stereo", "tilted-uneven", "touching-clusters", "casing-soil", "mycelium")
 """The families the diameter line is fit on: those inside the operating range with closed, domed caps.
 Opened flat caps read far smaller (their thin rim holds few voxels), and one line for both would
 misstate the domes a bed mostly holds."""

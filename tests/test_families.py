@@ -87,7 +87,7 @@ def test_suite_and_calibration_beds_are_apart_per_family_and_from_the_recipe_tra
     calibration = {seed for name in FAMILIES for seed in family_seeds(name, 50, CALIBRATION_SEED)}
     assert len(calibration) == 50 * len(FAMILIES) and not calibration & (set(suite) | trained)
     with pytest.raises(ValueError, match="unknown bed family"):
-        family_seeds("mycelium", 1)
+        family_seeds("truffles", 1)
 
 
 def test_synth_family_writes_its_beds_and_refuses_a_wrong_name(tmp_path):
@@ -99,10 +99,23 @@ def test_synth_family_writes_its_beds_and_refuses_a_wrong_name(tmp_path):
     from perception.synthetic.scene import SyntheticScene
 
     assert all(0.0064 <= SyntheticScene.load(path).spacing <= 0.0096 for path in scenes)
-    wrong = run("synth", "--family", "mycelium", "--out", tmp_path / "other")
-    one_line_error(wrong, "unknown bed family 'mycelium'; choose one of shallow-domes")
+    wrong = run("synth", "--family", "truffles", "--out", tmp_path / "other")
+    one_line_error(wrong, "unknown bed family 'truffles'; choose one of shallow-domes")
     assert "casing-soil" in wrong.stderr
     assert not (tmp_path / "other").exists()
+
+
+def test_synth_help_names_every_family():
+    """``--help`` lists the families without importing the generator, so the list is written out: it
+    must name every family there is."""
+    import argparse
+
+    from pipeline.commands import synth
+
+    parser = argparse.ArgumentParser()
+    synth.add_arguments(parser)
+    help_text = next(action.help for action in parser._actions if "--family" in action.option_strings)
+    assert [name for name in FAMILIES if name not in help_text.replace(",", " ").split()] == []
 
 
 def test_the_diameter_line_is_fit_on_the_domed_families_inside_the_range():

@@ -249,6 +249,30 @@ def test_soil_lumps_are_rough_mounds_of_soil_a_few_centimetres_across():
         SceneConfig(soil_lumps=(3, 1))
 
 
+def test_mycelium_mats_cover_their_share_of_the_soil_and_fill_its_crevices():
+    from perception.synthetic.terrain import MYCELIUM_FUZZ, MYCELIUM_THICKNESS, Heightfield, add_mycelium
+
+    xs = np.linspace(-0.25, 0.25, 126)
+    flat = Heightfield(xs, xs.copy(), np.zeros((126, 126)))
+    rng = np.random.default_rng(4)
+    assert add_mycelium(rng, flat, 0.0) is flat and rng.random() == np.random.default_rng(4).random()
+    mats = add_mycelium(np.random.default_rng(4), flat, 0.3).height
+    assert abs(np.mean(mats > 0) - 0.3) < 0.02 and mats.min() >= 0
+    assert MYCELIUM_THICKNESS[0] * 0.5 < np.median(mats[mats > 0.0005]) < MYCELIUM_THICKNESS[1]
+    assert mats.max() < MYCELIUM_THICKNESS[1] * (1 + 4 * MYCELIUM_FUZZ)
+    labels, count = ndimage.label(mats > 0)
+    sizes = 2 * np.sqrt(ndimage.sum_labels(np.ones_like(mats), labels, range(1, count + 1)) * 0.004**2 / np.pi)
+    assert count >= 3 and sizes.max() > 0.03  # several patches, some a few centimetres across or more
+    # crevices 8 mm wide and 6 mm deep in every tenth row: under a mat they are filled
+    grooved = np.zeros((126, 126))
+    grooved[::10] = -0.006
+    covered = add_mycelium(np.random.default_rng(4), Heightfield(xs, xs.copy(), grooved), 0.3).height
+    under = (mats > 0.001)[::10]
+    assert np.median(covered[::10][under]) > -0.002 and np.median(covered[::10][~(mats[::10] > 0)]) == -0.006
+    with pytest.raises(ValueError, match="mycelium"):
+        SceneConfig(mycelium=(0.5, 0.2))
+
+
 def test_soil_banks_rise_on_one_side_of_a_cap_up_its_stem():
     from perception.synthetic.terrain import SOIL_BANK_RISE, SOIL_LUMP_ROUGHNESS, Heightfield, soil_bank_heights
 

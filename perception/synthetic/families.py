@@ -73,8 +73,11 @@ FAMILIES = {
                                                cluster_spacing=(0.85, 1.0))),
     "casing-soil": BedFamily("bed", "casing soil with lumps, banks and holes", SceneConfig(
         soil_holes=(0.2, 0.5), soil_lumps=(6, 12), soil_banks=(2, 6))),
+    "mycelium": BedFamily("bed", "white mycelium mats over 20-50 % of the soil, 1.5-4 mm thick",
+                          SceneConfig(mycelium=(0.2, 0.5))),
 }
-"""The suite's families by name, in the order the suite prints them."""
+"""The suite's families by name, in the order the suite prints them; a family's place in it picks its
+seeds (``family_seeds``), so new families go last."""
 
 
 def family_seeds(name: str, beds: int, base_seed: int = SUITE_SEED) -> list[int]:

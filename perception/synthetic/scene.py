@@ -21,9 +21,9 @@ from fusion.integrate import IntegrationConfig, merge_points
 from perception.cap import CAP_HEIGHT_RATIO, CAP_RADIUS_AT_UNIT_SCALE, cap_box, cap_rotation
 from perception.encoding import EncodingTargets, encode
 from perception.synthetic.template import RIM_RATIO, STEM_LENGTH_RATIO, STEM_RADIUS_RATIO, mushroom_template
-from perception.synthetic.terrain import (TERRAINS, Distractor, add_soil_lumps, deform_along_normals,
-                                          deform_heightfield_mesh, heightfield_mesh, random_distractor,
-                                          soil_bank_heights, soil_heightfield)
+from perception.synthetic.terrain import (TERRAINS, Distractor, add_mycelium, add_soil_lumps,
+                                          deform_along_normals, deform_heightfield_mesh, heightfield_mesh,
+                                          random_distractor, soil_bank_heights, soil_heightfield)
 
 VISIBILITY_MODELS = ("hpr", "camera", "fused", "katz")
 """hpr: hidden point removal by z-buffer (fast); camera: the virtual depth camera; fused: the virtual
@@ -88,6 +88,10 @@ class SceneConfig:
     against one side, drawn from [low, high]: a rough crest up the stem to below the dome
     (``terrain.soil_bank_heights``), so that soil and cap meet in one slope, as young caps stand on a
     real bed. 0 0 draws nothing."""
+    mycelium: tuple[float, float] = (0.0, 0.0)
+    """Share of the soil under white mycelium mats, drawn per bed from [low, high]: a fuzzy layer a few
+    millimetres thick in soft-edged patches (``terrain.add_mycelium``), as a bed shows before and
+    between flushes. 0 0 draws nothing."""
     ground_cell: float = 0.004
     bed_tilt_deg: float = 0.0
     """The whole bed (soil, caps and camera) tilted by up to this many degrees about a random horizontal
@@ -112,6 +116,8 @@ class SceneConfig:
             raise ValueError(f"more than one view needs hpr or fused visibility, not {self.visibility!r}")
         if not 0 <= self.soil_holes[0] <= self.soil_holes[1] <= 1:
             raise ValueError(f"soil hole shares must satisfy 0 <= low <= high <= 1, got {self.soil_holes}")
+        if not 0 <= self.mycelium[0] <= self.mycelium[1] <= 1:
+            raise ValueError(f"mycelium shares must satisfy 0 <= low <= high <= 1, got {self.mycelium}")
         if any(int(count) != count for count in self.soil_lumps) or not 0 <= self.soil_lumps[0] <= self.soil_lumps[1]:
             raise ValueError(f"soil lump counts must satisfy 0 <= low <= high, got {self.soil_lumps}")
         if any(int(count) != count for count in self.soil_banks) or not 0 <= self.soil_banks[0] <= self.soil_banks[1]:
@@ -306,6 +312,8 @@ def build_bed(rng: np.random.Generator, config: SceneConfig) -> BedMeshes:
     field = soil_heightfield(rng, config.bed_size, config.ground_cell, terrain)
     if config.soil_lumps[1] > 0:  # drawn only when asked, so other configs keep their beds
         field = add_soil_lumps(rng, field, int(rng.integers(config.soil_lumps[0], config.soil_lumps[1] + 1)))
+    if config.mycelium[1] > 0:  # drawn only when asked, so other configs keep their beds
+        field = add_mycelium(rng, field, float(rng.uniform(*config.mycelium)))
     ground_vertices, ground_triangles = heightfield_mesh(field)
     ground_vertices = deform_heightfield_mesh(rng, field, ground_vertices, count=24, magnitude=0.002,
                                               radius=(0.004, 0.015))

@@ -111,6 +111,34 @@ def add_soil_lumps(rng: np.random.Generator, field: Heightfield, count: int) -> 
     return Heightfield(field.xs, field.ys, field.height + lumps * (1.0 + crumbs))
 
 
+MYCELIUM_THICKNESS = (0.0015, 0.004)
+"""Thickness of a bed's mycelium mats, metres: a white, fluffy layer over the casing."""
+MYCELIUM_PATCH = 0.015
+"""Spread (the noise filter's standard deviation, metres) of the mats' outline: patches a few
+centimetres to a decimetre across."""
+MYCELIUM_FUZZ = 0.3
+"""Fuzz on a mat, as a share of its thickness (cell-scale noise)."""
+MYCELIUM_FILL = 0.008
+"""Metres: a mat fills the casing's crevices narrower than about this (the soil smoothed over it)."""
+
+
+def add_mycelium(rng: np.random.Generator, field: Heightfield, share: float) -> Heightfield:
+    """``field`` with white mycelium mats over about ``share`` of it: a fuzzy layer a few millimetres
+    thick over the casing, filling its crevices, in patches with soft edges, as a bed shows before and
+    between flushes. Only the surface's shape changes (the network reads no colour), so a mat is a
+    low, smoother, fuzzy plateau on the soil."""
+    if share <= 0:
+        return field
+    cell = field.xs[1] - field.xs[0]
+    outline = _smooth_noise(rng, field.height.shape, MYCELIUM_PATCH / cell)
+    level = np.quantile(outline, 1.0 - share)
+    cover = np.clip((outline - level) / 0.5, 0.0, 1.0)  # soft edges over half a standard deviation
+    fuzz = np.maximum(1.0 + MYCELIUM_FUZZ * _smooth_noise(rng, field.height.shape, 0.7), 0.0)
+    filled = np.maximum(field.height, ndimage.gaussian_filter(field.height, MYCELIUM_FILL / cell))
+    surface = filled + rng.uniform(*MYCELIUM_THICKNESS) * fuzz
+    return Heightfield(field.xs, field.ys, field.height + cover * (surface - field.height))
+
+
 def _blob_heights(gx: np.ndarray, gy: np.ndarray, centre: np.ndarray, width: np.ndarray, angle: np.ndarray,
                   height: np.ndarray) -> np.ndarray:
     """The highest of anisotropic Gaussian blobs over the grid (gx, gy): blob b peaks at ``height[b]``

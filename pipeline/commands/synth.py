@@ -21,7 +21,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--family", help="beds of one family of the robustness suite (bench/robustness.py): "
                         "shallow-domes, real-domes, flats, large-brown, dense-pins, spacing-1mm, spacing-5mm, "
                         "spacing-8mm, single-view, fused-views, oak-stereo, tilted-uneven, touching-clusters, "
-                        "casing-soil (--spacing overrides its spacing)")
+                        "casing-soil, mycelium (--spacing overrides its spacing)")
     parser.add_argument("--scenes", type=positive(int), default=10, help="number of scenes (default 10)")
     parser.add_argument("--seed", type=parse_seed, default=0, help="base seed (default 0)")
     parser.add_argument("--mushrooms", type=parse_mushroom_count, nargs=2, default=(5, 45), metavar=("LOW", "HIGH"),
