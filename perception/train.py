@@ -105,6 +105,9 @@ class TrainConfig:
     """Share of the training beds made as the product makes a scan instead: the virtual camera's noisy
     frames from 2-6 viewpoints, merged as fusion merges them, at its 2 mm voxel. The model then also
     sees a scan's artefacts: rims smoothed into the soil, holes at grazing angles, stereo shadows."""
+    stereo_share: float = 0.0
+    """Share of those scanned beds seen by the noisier OAK-class stereo model (``capture.virtual``'s
+    ``SENSOR_MODELS["oak"]``: more range noise, speckle, flying pixels) instead of the scene's sensor."""
 
     @property
     def averaging_start(self) -> int | None:
@@ -123,8 +126,13 @@ FUSED_BEDS = {"visibility": "fused", "views": (2, 6), "spacing": IntegrationConf
 
 def scene_config(config: TrainConfig, seed: int) -> SceneConfig:
     """The scene configuration of the bed drawn from ``seed``: ``config.scene``, or for a share
-    ``fused_share`` of the seeds, the same with ``FUSED_BEDS``."""
+    ``fused_share`` of the seeds, the same with ``FUSED_BEDS``, seen for a share ``stereo_share`` of
+    those by the OAK-class stereo sensor."""
     if config.fused_share > 0 and np.random.default_rng(seed + 2).random() < config.fused_share:
+        if config.stereo_share > 0 and np.random.default_rng(seed + 3).random() < config.stereo_share:
+            from capture.virtual import SENSOR_MODELS
+
+            return replace(config.scene, **FUSED_BEDS, sensor=SENSOR_MODELS["oak"])
         return replace(config.scene, **FUSED_BEDS)
     return config.scene
 

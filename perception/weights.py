@@ -133,10 +133,10 @@ STORAGE_DTYPES = {"FloatStorage": np.float32, "DoubleStorage": np.float64, "Half
 def read_payload(path: Path) -> dict:
     """What ``write_payload`` wrote (torch's zip format: a pickle whose tensors point at raw little-endian
     storages beside it), read without torch: tensors come back as numpy arrays. Only plain Python
-    values, ordered dicts and tensors are unpickled; anything else in the file is refused."""
+    values, ordered dicts, counters and tensors are unpickled; anything else in the file is refused."""
     import pickle
     import zipfile
-    from collections import OrderedDict
+    from collections import Counter, OrderedDict
 
     with zipfile.ZipFile(path) as archive:
         pickled = next(name for name in archive.namelist() if name.endswith("/data.pkl"))
@@ -156,8 +156,8 @@ def read_payload(path: Path) -> dict:
                     return rebuild
                 if module == "torch" and name in STORAGE_DTYPES:
                     return STORAGE_DTYPES[name]
-                if (module, name) == ("collections", "OrderedDict"):
-                    return OrderedDict
+                if (module, name) in (("collections", "OrderedDict"), ("collections", "Counter")):
+                    return OrderedDict if name == "OrderedDict" else Counter  # a checkpoint's scheduler holds one
                 raise pickle.UnpicklingError(f"{module}.{name} is no part of a weights file")
 
             def persistent_load(self, pid):

@@ -135,6 +135,26 @@ def test_weights_read_without_torch_are_those_torch_reads(tmp_path):
         torch_model.config, torch_model.point_spacing, torch_model.inference_zoom, torch_model.calibration)
 
 
+def test_a_training_checkpoint_is_read_without_torch_as_torch_reads_it(tmp_path, monkeypatch):
+    """``--model RUN/checkpoint.pt`` works for ``detect`` as for the torch commands: a checkpoint also
+    holds the optimiser's and the scheduler's state."""
+    from helpers import tiny_network_config
+    from perception.train import TrainConfig, train
+
+    monkeypatch.setitem(NETWORK_PRESETS, "tiny", tiny_network_config())
+    config = TrainConfig(iterations=2, network="tiny", validation_scenes=0, scene=SceneConfig(mushrooms=(3, 5)))
+    train(config, tmp_path, progress=False, stop_at=1)
+    checkpoint = tmp_path / "checkpoint.pt"
+    net, meta = load_inference_net(checkpoint)
+    model, torch_meta = load_weights(checkpoint)
+    assert meta == torch_meta and meta["iteration"] == 1
+    coords, features = _bed_voxels(net.config)
+    with torch.no_grad():
+        expected = inference_model(model)(sparse.SparseTensor(torch.from_numpy(features),
+                                                             torch.from_numpy(coords))).numpy()
+    np.testing.assert_allclose(net(coords, features), expected, atol=2e-5 * np.abs(expected).max())
+
+
 def test_a_file_that_holds_no_weights_is_refused(tmp_path):
     garbage = tmp_path / "garbage.pt"
     garbage.write_bytes(b"not a zip at all")

@@ -36,6 +36,7 @@ TRAIN_FLAGS = {
     "tilt_deg": {"parse": at_most(non_negative(float), 90.0, " degrees")},
     "noise": {"parse": at_most(non_negative(float), 0.01, " metres (0.0005 is half a millimetre)")},
     "fused_share": {"parse": at_most(non_negative(float), 1.0, " (a share of the beds)"), "metavar": "SHARE"},
+    "stereo_share": {"parse": at_most(non_negative(float), 1.0, " (a share of the scanned beds)"), "metavar": "SHARE"},
 }
 """Validators and names of TrainConfig's flags where its field's type and name are not enough
 (pipeline.flags.FLAG_KEYS)."""
