@@ -21,8 +21,8 @@ if TYPE_CHECKING:
     from perception.model import MushroomNet
 
 Network = Union["MushroomNet", InferenceNet]
-"""A trained network as inference reads it: the numpy one the commands load (``perception.inference``),
-or the torch one that training validates as it goes."""
+"""A trained network as inference reads it: the numpy one ``detect`` loads for a cloud file
+(``perception.inference``), or the torch one of training, the live chain and ``eval``."""
 
 
 
@@ -64,7 +64,7 @@ def voxel_average(values: np.ndarray, point_to_voxel: np.ndarray, voxels: int) -
     return np.stack([np.bincount(point_to_voxel, column, voxels) for column in values.T], 1) / counts[:, None]
 
 
-def network_outputs(model: Network, coords: np.ndarray, features: np.ndarray) -> np.ndarray:
+def _outputs_of(model: Network, coords: np.ndarray, features: np.ndarray) -> np.ndarray:
     """(V, out_channels) float64 network outputs on voxels ``coords`` with input ``features``, the
     existence logit turned into a probability (by the sigmoid of the network's own library)."""
     if isinstance(model, InferenceNet):
@@ -221,7 +221,7 @@ def predict(model: Network, points: np.ndarray, thin: bool = True,
 def network_output(model: Network, coords: np.ndarray, zoomed_centroids: np.ndarray, zoom: float):
     """The network on voxels of a cloud scaled by ``zoom`` (from ``network_input``), decoded in the
     cloud's own metres: voxel centroids, existence, predicted cap centres, orientation values."""
-    out = network_outputs(model, coords, voxel_features(model.config, zoomed_centroids))
+    out = _outputs_of(model, coords, voxel_features(model.config, zoomed_centroids))
     centroids = zoomed_centroids / zoom
     encoding = model.config.encoding
     centers = out[:, 1:4] * LENGTH_UNIT / zoom

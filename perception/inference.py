@@ -1,5 +1,5 @@
-"""The trained network's forward pass in numpy: what the product's commands run, so that they start
-without importing torch (1.4 s of a ``detect`` call's start-up on 2 cores).
+"""The trained network's forward pass in numpy: what ``detect`` runs on a cloud file, so that it starts
+without importing torch (1.4 s of its start-up on 2 cores); the live chain and ``eval`` run torch's.
 
 ``InferenceNet`` holds a ``MushroomNet``'s weights with each batch norm folded into the convolution
 before it (``perception.model.fold_batch_norms`` does the same in torch) and runs the same layers in
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from perception.calibration import UNCALIBRATED, Calibration
-from perception.network import NetworkConfig
+from perception.network import INFERENCE_ZOOM, NORM_AFTER, NetworkConfig
 
 BATCH_BITS, COORD_BITS = 15, 16
 COORD_MARGIN = 8
@@ -30,15 +30,13 @@ DENSE_TABLE_CELLS = 1 << 23
 """Largest bounding box (cells, margin included) looked up in a dense table: 64 MB of int64 rows. A 0.5 m
 bed at 4.3 mm voxels (zoom 1.05) and 0.1 m of relief spans about 0.4 M cells, at 3.75 mm (zoom 1.2, the
 shipped model's) about 0.6 M; a fused cloud with a stray point metres away falls back to sorted keys,
-which build the kernel maps more slowly (docs/DESIGN.md section 9; ``tests/test_sparse.py`` holds both
-to the same maps)."""
+which build the kernel maps more slowly (docs/DESIGN.md section 9; ``tests/test_sparse.py`` and
+``tests/test_inference.py`` hold both to the same maps)."""
 TABLE_MARGIN = 4
 """Cells of room around the box: a stride-2 map asks from doubled parents up to one cell outside the
 fine voxels, plus its offsets. Queries that reach outside the padded box use the sorted keys."""
 BATCH_NORM_EPS = 1e-5
 """torch's BatchNorm1d epsilon, which the trained running variances were normalised with."""
-NORM_AFTER = {"conv1": "norm1", "conv2": "norm2", "conv": "norm"}
-"""The batch norm that follows each convolution, by attribute name (``perception.model``)."""
 
 
 def pack(coords: np.ndarray) -> np.ndarray:
@@ -92,6 +90,8 @@ class VoxelLevel:
 
     def lookup(self, coords: np.ndarray, offsets: np.ndarray) -> np.ndarray:
         """(K, M): the row holding voxel coords[m] + offsets[k], or -1 where that voxel is empty."""
+        if len(offsets) == 0 or len(coords) == 0:
+            return np.full((len(offsets), len(coords)), -1, np.int64)
         reach = np.concatenate([np.zeros((len(offsets), 1), np.int64), offsets], 1)
         if (self.table is not None and (coords.min(0) + reach.min(0) >= self.low).all()
                 and (coords.max(0) + reach.max(0) <= self.high).all()):
@@ -162,7 +162,7 @@ class InferenceNet:
     layers: dict
     """Per convolution or linear layer name, (weight, bias or None); convolutions (K, C_in, C_out)."""
     point_spacing: float | None = None
-    inference_zoom: float = 1.0
+    inference_zoom: float = INFERENCE_ZOOM
     calibration: Calibration = UNCALIBRATED
 
     @staticmethod

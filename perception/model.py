@@ -16,7 +16,7 @@ import torch
 from torch import nn
 
 from perception.calibration import UNCALIBRATED
-from perception.network import INFERENCE_ZOOM, NetworkConfig
+from perception.network import INFERENCE_ZOOM, NORM_AFTER, NetworkConfig
 from perception.sparse import (SparseBatchNorm, SparseConv3d, SparseConvTranspose3d, SparseReLU, SparseTensor,
                                SubmanifoldConv3d, sparse_cat)
 
@@ -99,8 +99,6 @@ class MushroomNet(nn.Module):
         return self.relu(self.conv1_tr(sparse_cat(s1, up))).features
 
 
-_NORMED_CONVOLUTIONS = (("conv1", "norm1"), ("conv2", "norm2"), ("conv", "norm"))
-"""(convolution, the batch norm right after it) attribute names, in MushroomNet, ResBlock and the stages."""
 
 
 def fold_batch_norms(model: MushroomNet) -> MushroomNet:
@@ -112,7 +110,7 @@ def fold_batch_norms(model: MushroomNet) -> MushroomNet:
     folded = copy.deepcopy(model).eval()
     with torch.no_grad():
         for module in list(folded.modules()):
-            for conv_name, norm_name in _NORMED_CONVOLUTIONS:
+            for conv_name, norm_name in NORM_AFTER.items():
                 conv, norm = getattr(module, conv_name, None), getattr(module, norm_name, None)
                 if not isinstance(norm, SparseBatchNorm):
                     continue

@@ -1,6 +1,6 @@
 """What the network is, without torch: its config and presets, the features it reads per voxel, and the
-unit of its residual output. ``perception.model`` builds the torch network from it (for training),
-``perception.inference`` runs a trained one in numpy (for everything else)."""
+unit of its residual output. ``perception.model`` builds the torch network from it (training, the live
+chain, ``eval``), ``perception.inference`` runs a trained one in numpy (``detect`` on a cloud file)."""
 
 from __future__ import annotations
 
@@ -17,6 +17,10 @@ INFERENCE_ZOOM = 1.05
 1.2): the network reads the cloud scaled up by it, so small caps span more voxels, within training's
 scale jitter. Clustering stays in the cloud's own metres."""
 
+
+NORM_AFTER = {"conv1": "norm1", "conv2": "norm2", "conv": "norm"}
+"""The batch norm right after each convolution, by attribute name in the network's blocks and stages:
+what folding the batch norms into the convolutions pairs up."""
 
 ENCODINGS = ("implicit", "explicit-centre", "explicit-orientation")
 

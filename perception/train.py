@@ -75,7 +75,7 @@ class TrainConfig:
     validation reads at it. It belongs with ``scale_jitter``: a network trained on beds scaled by
     1.05-1.35 is read at 1.2. None: ``INFERENCE_ZOOM``, for the default jitter."""
     network: str = "slim-no"
-    """Network preset (perception.model.NETWORK_PRESETS): slim-no, the shipped model's (slim U-Net fed normals
+    """Network preset (perception.network.NETWORK_PRESETS): slim-no, the shipped model's (slim U-Net fed normals
     and each centroid's place in its voxel); slim-n (normals only); slim (occupancy only, as the paper);
     wide-no (slim-no with wider coarse levels); slim-no-k5 (slim-no with a 5^3 first convolution);
     lean-no (slim-no with 32 channels in the full-resolution up block); fcgf (the paper's full backbone)."""
@@ -108,6 +108,10 @@ class TrainConfig:
     stereo_share: float = 0.0
     """Share of those scanned beds seen by the noisier OAK-class stereo model (``capture.virtual``'s
     ``SENSOR_MODELS["oak"]``: more range noise, speckle, flying pixels) instead of the scene's sensor."""
+
+    def __post_init__(self) -> None:
+        if self.stereo_share > 0 and self.fused_share == 0:
+            raise ValueError("stereo_share picks among the scanned beds: give a fused_share too")
 
     @property
     def averaging_start(self) -> int | None:

@@ -99,6 +99,7 @@ def load_inference_net(path: Path) -> tuple[InferenceNet, dict]:
         values = state["model"]
         finite = all(np.isfinite(value).all() for value in values.values() if value.dtype.kind == "f")
         net = InferenceNet.from_state_dict(network, values, **recorded)
+        net(np.zeros((1, 4), np.int64), np.ones((1, network.in_channels), np.float32))  # weights fit the config
     except FileNotFoundError:
         raise
     except Exception as error:
@@ -141,14 +142,16 @@ def read_payload(path: Path) -> dict:
     with zipfile.ZipFile(path) as archive:
         pickled = next(name for name in archive.namelist() if name.endswith("/data.pkl"))
         folder = pickled[:-len("data.pkl")]
-        if archive.read(folder + "byteorder").strip() not in (b"", b"little"):
+        order = archive.read(folder + "byteorder").strip() if folder + "byteorder" in archive.namelist() else b""
+        if order not in (b"", b"little"):  # files without the record are little-endian, as torch reads them
             raise ValueError("weights stored big-endian")
 
         def rebuild(storage: np.ndarray, offset: int, size: tuple, stride: tuple, *_) -> np.ndarray:
-            if not size:
-                return storage[offset].copy()
-            strides = tuple(step * storage.itemsize for step in stride)
-            return np.lib.stride_tricks.as_strided(storage[offset:], size, strides).copy()
+            if not isinstance(storage, np.ndarray):
+                raise pickle.UnpicklingError("a tensor without a storage")
+            # np.ndarray checks that the view lies inside the storage's bytes
+            return np.ndarray(tuple(size), storage.dtype, storage, offset * storage.itemsize,
+                              tuple(step * storage.itemsize for step in stride)).copy()
 
         class Unpickler(pickle.Unpickler):
             def find_class(self, module: str, name: str):

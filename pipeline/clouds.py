@@ -121,6 +121,8 @@ def infer_units(spacing: float, extent: float) -> str | None:
 
 
 _PCD_TYPES = {"F": "f", "I": "i", "U": "u"}
+PCD_HEADER_BYTES = 65536
+"""A PCD header ends (at its DATA line) within this many bytes."""
 
 
 def read_pcd(path: Path) -> np.ndarray | None:
@@ -130,7 +132,7 @@ def read_pcd(path: Path) -> np.ndarray | None:
     with open(path, "rb") as file:
         data = file.read()
     header, position = {}, 0
-    while position < len(data):
+    while position < min(len(data), PCD_HEADER_BYTES):
         end = data.find(b"\n", position)
         end = len(data) if end < 0 else end
         words = data[position:end].decode("ascii", "replace").split()
@@ -152,7 +154,11 @@ def read_pcd(path: Path) -> np.ndarray | None:
         if not len(fields) == len(sizes) == len(types) == len(counts) or form not in ("ascii", "binary"):
             raise ValueError
         columns = [fields.index(axis) for axis in "xyz"]
-    except (KeyError, ValueError, IndexError):
+        record = np.dtype([(f"f{k}", f"<{kind}{size}", (count,)) for k, (kind, size, count)
+                           in enumerate(zip(types, sizes, counts))])
+        if points < 0 or min(counts) < 1:
+            raise ValueError
+    except (KeyError, ValueError, IndexError, TypeError):
         raise ValueError(f"{path} is not a readable PCD file (its header lacks or garbles FIELDS, SIZE, TYPE, "
                          "COUNT, POINTS or DATA, or names no x, y, z)") from None
     first = np.cumsum([0] + counts)
@@ -166,8 +172,6 @@ def read_pcd(path: Path) -> np.ndarray | None:
         except ValueError:
             raise ValueError(f"{path}: a value is not a number; the file is not a readable ASCII PCD") from None
         return table[:, [first[c] for c in columns]]
-    record = np.dtype([(f"f{k}", f"<{kind}{size}", (count,)) for k, (kind, size, count)
-                       in enumerate(zip(types, sizes, counts))])
     if len(data) - position < points * record.itemsize:
         raise ValueError(f"{path} is cut short: its header lists {points} points ({points * record.itemsize} bytes "
                          f"of data) but the file holds {len(data) - position} bytes after its header")

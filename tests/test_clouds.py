@@ -60,6 +60,12 @@ def test_a_bad_pcd_is_one_clear_error(tmp_path):
     garbled.write_text("VERSION 0.7\nFIELDS a b c\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 1\nDATA ascii\n1 2 3\n")
     with pytest.raises(ValueError, match="not a readable PCD"):
         load_cloud(garbled)
+    for header in ("FIELDS x y z\nSIZE 1 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 1\nDATA binary\n",
+                   "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS -1\nDATA ascii\n"):
+        odd = tmp_path / "odd.pcd"
+        odd.write_bytes(header.encode() + bytes(64))
+        with pytest.raises(ValueError, match="not a readable PCD"):
+            load_cloud(odd)
     word = tmp_path / "word.pcd"
     word.write_text("FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 1\nDATA ascii\n1 two 3\n")
     with pytest.raises(ValueError, match="not a number"):

@@ -2,6 +2,7 @@
 weights read without torch against torch.load."""
 
 import pickle
+import zipfile
 from dataclasses import replace
 
 import numpy as np
@@ -162,8 +163,30 @@ def test_a_file_that_holds_no_weights_is_refused(tmp_path):
         load_inference_net(garbage)
     foreign = tmp_path / "foreign.pt"
     torch.save({"model": {"w": torch.zeros(2)}, "hook": pickle.loads}, foreign)  # a callable no weights hold
+    with pytest.raises(pickle.UnpicklingError, match="pickle.loads is no part of a weights file"):
+        read_payload(foreign)
     with pytest.raises(ValueError, match="not a mushroom-pose weights file"):
         load_inference_net(foreign)
+    # a tensor that claims more elements than its storage holds is refused, not read from beyond it
+    torch.save({"w": torch.zeros(4)}, tmp_path / "short.pt")
+    with zipfile.ZipFile(tmp_path / "short.pt") as archive:
+        entries = {name: archive.read(name) for name in archive.namelist()}
+    pickled = next(name for name in entries if name.endswith("data.pkl"))
+    assert entries[pickled].count(b"K\x04\x85") == 1  # the size tuple (4,) as pickled
+    entries[pickled] = entries[pickled].replace(b"K\x04\x85", b"M\x00\x01\x85")  # (256,)
+    with zipfile.ZipFile(tmp_path / "long.pt", "w") as archive:
+        for name, data in entries.items():
+            archive.writestr(name, data)
+    with pytest.raises(ValueError):
+        read_payload(tmp_path / "long.pt")
+    # weights that do not fit their recorded network (its input: no normals, no offsets)
+    model = _randomised(NETWORK_PRESETS["slim-no"])
+    save_weights(model, tmp_path / "misfit.pt")
+    payload = torch.load(tmp_path / "misfit.pt", weights_only=False)
+    payload["network"] = {**payload["network"], "normals": False, "offsets": False}
+    torch.save(payload, tmp_path / "misfit.pt")
+    with pytest.raises(ValueError, match="not a mushroom-pose weights file"):
+        load_inference_net(tmp_path / "misfit.pt")
     with pytest.raises(FileNotFoundError):
         load_inference_net(tmp_path / "missing.pt")
     diverged = _randomised(NETWORK_PRESETS["slim-no"])

@@ -505,3 +505,18 @@ def test_resume_goes_on_with_the_runs_own_flags(tmp_path, tiny_network):
     assert load_weights(resumed)[1]["train_config"]["lr"] == 0.002
     again = TrainConfig(lr=0.002, network=tiny_network)
     assert train(again, tmp_path / "resumed", resume=True, progress=False) is not None
+
+
+def test_stereo_share_sends_that_share_of_the_scanned_beds_through_the_oak_model():
+    from capture.virtual import SENSOR_MODELS
+    from perception.train import scene_config
+
+    def sensors(config):
+        chosen = [scene_config(config, seed) for seed in range(400)]
+        return [c.sensor for c in chosen if c.visibility == "fused"]
+
+    mixed = sensors(TrainConfig(fused_share=0.5, stereo_share=0.5))
+    assert 150 < len(mixed) < 250 and 0.35 < np.mean([s == SENSOR_MODELS["oak"] for s in mixed]) < 0.65
+    assert not any(s == SENSOR_MODELS["oak"] for s in sensors(TrainConfig(fused_share=0.5)))
+    with pytest.raises(ValueError, match="give a fused_share too"):
+        TrainConfig(stereo_share=0.5)
