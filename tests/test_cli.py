@@ -100,7 +100,7 @@ def test_every_train_config_field_is_a_flag():
         "--tilt-deg", "0", "--noise", "0", "--cap-scale", "0.7", "1.2", "--spacing", "0.004",
         "--spacing-jitter", "0.9", "1.1", "--cap-height", "0.4", "1.1", "--cluster-probability", "0.6",
         "--views", "1", "4", "--cluster-spacing", "0.6", "1.1", "--visibility", "fused",
-        "--fused-share", "0.3", "--soil-holes", "0.1", "0.4", "--soil-lumps", "2", "9",
+        "--fused-share", "0.3", "--stereo-share", "0.5", "--soil-holes", "0.1", "0.4", "--soil-lumps", "2", "9",
         "--soil-banks", "1", "5"]))
     changed = {name for name, value in vars(config).items() if value != getattr(TrainConfig(), name)}
     assert changed == set(vars(config)), set(vars(config)) - changed
