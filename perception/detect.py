@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
-
 from typing import TYPE_CHECKING, Union
 
 import numpy as np

@@ -85,8 +85,7 @@ class VoxelLevel:
             self.strides = np.array([int(np.prod(extent[i + 1:])) for i in range(4)], np.int64)
             self.table = np.full(int(np.prod(extent)), -1, np.int64)
             self.table[(coords - self.low) @ self.strides] = np.arange(len(coords))
-        self.order = np.argsort(pack(coords), kind="stable")
-        self.sorted_keys = pack(coords)[self.order]
+        self._sorted: tuple[np.ndarray, np.ndarray] | None = None
 
     def lookup(self, coords: np.ndarray, offsets: np.ndarray) -> np.ndarray:
         """(K, M): the row holding voxel coords[m] + offsets[k], or -1 where that voxel is empty."""
@@ -96,9 +95,14 @@ class VoxelLevel:
         if (self.table is not None and (coords.min(0) + reach.min(0) >= self.low).all()
                 and (coords.max(0) + reach.max(0) <= self.high).all()):
             return self.table[((coords - self.low) @ self.strides)[None] + (reach @ self.strides)[:, None]]
+        if self._sorted is None:  # the sorted keys, made once, for queries the table does not cover
+            keys = pack(self.coords)
+            order = np.argsort(keys, kind="stable")
+            self._sorted = keys[order], order
+        sorted_keys, order = self._sorted
         keys = pack(coords)[None] + (pack(reach) - pack(np.zeros(4, np.int64)))[:, None]
-        position = np.minimum(np.searchsorted(self.sorted_keys, keys), len(self.sorted_keys) - 1)
-        return np.where(self.sorted_keys[position] == keys, self.order[position], -1)
+        position = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
+        return np.where(sorted_keys[position] == keys, order[position], -1)
 
     def parents(self) -> np.ndarray:
         """The occupied parent voxels unique(floor(coords / 2)), sorted."""

@@ -15,13 +15,14 @@ runs in numpy (``perception.inference``, the same maps and layers), so commands 
 
 from __future__ import annotations
 
-import itertools
 import math
 
 import torch
 from torch import nn
 
 from perception.inference import BATCH_MAX, COORD_BITS, COORD_MAX, COORD_MIN, DENSE_TABLE_CELLS, TABLE_MARGIN
+from perception.inference import kernel_offsets as numpy_kernel_offsets
+from perception.inference import pack as pack_keys  # array-generic: the same keys for torch tensors
 
 KernelMap = list[tuple[torch.Tensor | None, torch.Tensor | None]]
 """Per kernel offset, (in_idx, out_idx) int64 rows it connects; (None, None) means the identity."""
@@ -50,12 +51,6 @@ class SparseTensor:
         return f"SparseTensor(n={len(self.coords)}, channels={self.features.shape[1]}, stride={self.stride})"
 
 
-def _pack(coords: torch.Tensor) -> torch.Tensor:
-    u = coords[..., 1:] + (1 << (COORD_BITS - 1))
-    return ((coords[..., 0] << (3 * COORD_BITS)) + (u[..., 0] << (2 * COORD_BITS))
-            + (u[..., 1] << COORD_BITS) + u[..., 2])
-
-
 def pack(coords: torch.Tensor) -> torch.Tensor:
     """One int64 key per (b, x, y, z) row, ordered by batch then x, y, z; ValueError if unpackable."""
     batch, xyz = coords[:, 0], coords[:, 1:]
@@ -65,7 +60,7 @@ def pack(coords: torch.Tensor) -> torch.Tensor:
                          f"and x, y, z in [{COORD_MIN}, {COORD_MAX}]; got batch in "
                          f"[{int(batch.min())}, {int(batch.max())}], x, y, z in "
                          f"[{int(xyz.min())}, {int(xyz.max())}]")
-    return _pack(coords)
+    return pack_keys(coords)
 
 
 def unpack(key: torch.Tensor) -> torch.Tensor:
@@ -77,14 +72,12 @@ def unpack(key: torch.Tensor) -> torch.Tensor:
 
 def kernel_offsets(kernel_size: int, centred: bool, device: torch.device | None = None) -> torch.Tensor:
     """(K, 3) offsets, x slowest and z fastest (spconv's weight order); {-r..r}^3 or {0..k-1}^3."""
-    start = -(kernel_size // 2) if centred else 0
-    steps = range(start, start + kernel_size)
-    return torch.tensor(list(itertools.product(steps, steps, steps)), dtype=torch.int64, device=device)
+    return torch.from_numpy(numpy_kernel_offsets(kernel_size, centred)).to(device)
 
 
 def _key_deltas(offsets: torch.Tensor) -> torch.Tensor:
     """key(c + d) - key(c) for each offset d (exact while every field stays in range: see COORD_MARGIN)."""
-    return _pack(torch.cat([torch.zeros_like(offsets[:, :1]), offsets], 1)) - _pack(offsets.new_zeros(4))
+    return pack_keys(torch.cat([torch.zeros_like(offsets[:, :1]), offsets], 1)) - pack_keys(offsets.new_zeros(4))
 
 
 def _sorted_keys(x: SparseTensor) -> tuple[torch.Tensor, torch.Tensor]:
