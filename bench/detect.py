@@ -5,7 +5,7 @@ the median, the fastest and the slowest are printed, with ``mushroom-pose --help
 start-up alone. One more run in a child process times each stage: the imports the command pulls in
 (numpy, SciPy, scikit-learn, the project; it prints which of torch, Open3D, scikit-learn and SciPy
 the command loaded), then its library calls (loading the weights and the cloud, the bed plane, the up
-side, each pass of the network, clustering, pose fit, writing), so the stages and their sum can be
+side, the surface noise, each pass of the network, clustering, pose fit, writing), so the stages and their sum can be
 set against the wall time.
 
 Usage: python bench/detect.py --cloud example_0.pcd [--runs 5] [--detect-arg=--readings --detect-arg=1]
@@ -57,6 +57,7 @@ timed("pipeline.commands.detect", "load_model", "weights")
 timed("pipeline.clouds", "load_cloud", "load cloud")
 timed("fusion.bed", "estimate_bed_frame", "bed plane")
 timed("fusion.bed", "side_with_caps", "up side (network, each side read at most once)")
+timed("perception.detect", "smoothed", "surface noise (smoothing a noisy cloud)")
 timed("perception.detect", "predict", "predict")
 timed("perception.detect", "find_caps", "clustering and pose")
 timed("pipeline.commands.detect", "replace_file", "write detections")

@@ -15,6 +15,7 @@ from perception.inference import COORD_MAX, InferenceNet, voxelize
 from perception.instances import ClusterConfig, cluster
 from perception.network import LENGTH_UNIT, voxel_features
 from perception.pose import RADIUS_MODES, fit_caps, with_rim_radii
+from perception.surface_noise import smoothed
 
 if TYPE_CHECKING:
     from perception.model import MushroomNet
@@ -48,6 +49,9 @@ class SceneResult:
     voxels: VoxelPrediction
     frame: str = "bed"
     timings_ms: dict = field(default_factory=dict)
+    surface_noise: float = float("nan")
+    """The cloud's ``perception.surface_noise.surface_noise``; over ``CLEAN_NOISE`` its points were
+    smoothed before the network read them."""
 
 
 def network_input(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -315,11 +319,18 @@ def find_caps(prediction: VoxelPrediction, voxel: float, cluster_config: Cluster
 
 
 def detect_points(model: Network, points: np.ndarray, cluster_config: ClusterConfig = ClusterConfig(),
-                  zoom: float | None = None, readings: int = LIVE_READINGS, first: Reading | None = None) -> SceneResult:
+                  zoom: float | None = None, readings: int = LIVE_READINGS, first: Reading | None = None,
+                  noise: float | None = None) -> SceneResult:
     """Caps in a cloud already in the bed frame (z up, metres), read ``readings`` times (``predict``) at
-    ``zoom`` (default: the model's); ``first`` is its first reading when one was made already."""
+    ``zoom`` (default: the model's), a noisy cloud smoothed first (``perception.surface_noise``);
+    ``first`` is its first reading when one was made already, and ``noise`` the cloud's surface noise
+    when it was measured (and the cloud smoothed) already."""
     timings = {}
     start = time.perf_counter()
+    if noise is None:
+        points, noise = smoothed(points, model.point_spacing)
+        timings["smoothing"] = 1000 * (time.perf_counter() - start)
+        start = time.perf_counter()
     prediction = predict(model, points, zoom=zoom, readings=readings, first=first)
     timings["network"] = 1000 * (time.perf_counter() - start)
     voxel_labels, fit = find_caps(prediction, model.config.voxel, cluster_config, timings=timings)
@@ -327,19 +338,20 @@ def detect_points(model: Network, points: np.ndarray, cluster_config: ClusterCon
     point_labels = voxel_labels[prediction.point_to_voxel]
     members = np.bincount(point_labels[point_labels >= 0], minlength=len(fit))
     return SceneResult(replace(fit, members=members), point_labels, prediction.existence[prediction.point_to_voxel], prediction,
-                       timings_ms=timings)
+                       timings_ms=timings, surface_noise=noise)
 
 
 def detect_up_side(model: Network, points: np.ndarray, T_input_bed: np.ndarray,
                    cluster_config: ClusterConfig = ClusterConfig(), zoom: float | None = None,
                    readings: int = LIVE_READINGS) -> tuple[np.ndarray, np.ndarray, SceneResult]:
     """T_input_bed turned to the side of the bed plane its caps say is up (``fusion.bed.side_with_caps``),
-    the cloud in that bed frame, and its caps. The cloud is read once in each frame (the turned one not
-    at all when it holds too few voxels to win), and the chosen frame's reading is the first of its
-    ``readings``."""
+    the cloud in that bed frame (smoothed when noisy, as ``detect_points`` does), and its caps. The
+    cloud is read once in each frame (the turned one not at all when it holds too few voxels to win),
+    and the chosen frame's reading is the first of its ``readings``."""
     from fusion.bed import side_with_caps
 
     inputs, readings_made = {}, {}
+    points, noise = smoothed(points, model.point_spacing)
 
     def read_input(T: np.ndarray) -> tuple:
         if T.tobytes() not in inputs:
@@ -357,7 +369,7 @@ def detect_up_side(model: Network, points: np.ndarray, T_input_bed: np.ndarray,
 
     T_input_bed = side_with_caps(T_input_bed, cap_voxels, voxel_count)
     bed_points, first = inputs[T_input_bed.tobytes()][0], readings_made[T_input_bed.tobytes()]
-    return T_input_bed, bed_points, detect_points(model, bed_points, cluster_config, zoom, readings, first)
+    return T_input_bed, bed_points, detect_points(model, bed_points, cluster_config, zoom, readings, first, noise)
 
 
 def detect_cloud(model: Network, points: np.ndarray, cluster_config: ClusterConfig = ClusterConfig(),
@@ -376,4 +388,5 @@ def transform_result(result: SceneResult, T_frame_bed: np.ndarray, frame: str) -
     voxels = VoxelPrediction(transform_points(T_frame_bed, result.voxels.centroids), result.voxels.existence,
                              transform_points(T_frame_bed, result.voxels.centers), result.voxels.orientation,
                              result.voxels.point_to_voxel)
-    return SceneResult(result.caps.moved(T_frame_bed), result.point_labels, result.point_existence, voxels, frame, result.timings_ms)
+    return SceneResult(result.caps.moved(T_frame_bed), result.point_labels, result.point_existence, voxels, frame, result.timings_ms,
+                       result.surface_noise)

@@ -316,8 +316,11 @@ def evaluate_on_scenes(model: MushroomNet, scenes, methods=("meanshift", "dbscan
 
 def scene_caps(model: MushroomNet, scene, methods, height: str, axis: str, zoom: float | None, radius: str = "rim",
                readings: int = LIVE_READINGS):
-    """A synthetic scene's caps per clustering method, and its visible ground truth."""
-    prediction = predict(model, scene.points, zoom=zoom, readings=readings)
+    """A synthetic scene's caps per clustering method, and its visible ground truth; a noisy scene is
+    smoothed first, as ``detect`` smooths a cloud (``perception.surface_noise``)."""
+    from perception.surface_noise import smoothed
+
+    prediction = predict(model, smoothed(scene.points, model.point_spacing)[0], zoom=zoom, readings=readings)
     found = {}
     for method in methods:
         caps = find_caps(prediction, model.config.voxel, ClusterConfig(method=method), height, axis, radius=radius)[1]

@@ -95,6 +95,7 @@ def run(args: argparse.Namespace) -> int:
     result = transform_result(result, T_input_bed, frame)
     print(f"{len(result.caps)} caps in {args.cloud} ({len(points)} points, frame: {frame}, metres)")
     _print_caps(result, T_input_bed[:3, 2], grades)
+    _note_smoothing(result.surface_noise)
     _warn_outside_range(model, bed_points, result, args.cloud)
     payload = {**result.caps.to_document(frame, args.readings, grades, pick.min_score), "plan": plan,
                "T_input_bed": T_input_bed.tolist()}
@@ -109,6 +110,16 @@ def run(args: argparse.Namespace) -> int:
         if viewer.rrd is not None:
             print(f"rerun: {viewer.rrd}")
     return 0
+
+
+def _note_smoothing(noise: float) -> None:
+    """Say when the cloud's surfaces were noisy enough to be smoothed before reading."""
+    from perception.surface_noise import CLEAN_NOISE, smoothing_share
+
+    if noise > CLEAN_NOISE:
+        print(f"note: the surfaces scatter {noise:.2f} point spacings (a clean scan: under {CLEAN_NOISE:g}), as a "
+              f"single depth frame or passive stereo does; the points were smoothed "
+              f"({smoothing_share(noise):.0%}) before reading", file=sys.stderr)
 
 
 UNIT_NAMES = {"m": "metres", "cm": "centimetres", "mm": "millimetres"}
