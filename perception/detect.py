@@ -324,7 +324,9 @@ def detect_points(model: Network, points: np.ndarray, cluster_config: ClusterCon
     """Caps in a cloud already in the bed frame (z up, metres), read ``readings`` times (``predict``) at
     ``zoom`` (default: the model's), a noisy cloud smoothed first (``perception.surface_noise``);
     ``first`` is its first reading when one was made already, and ``noise`` the cloud's surface noise
-    when it was measured (and the cloud smoothed) already."""
+    when it was measured (and the cloud smoothed) already: both come from the same, final, points."""
+    if first is not None and noise is None:
+        raise ValueError("a first reading was made on points already smoothed or not: give their noise too")
     timings = {}
     start = time.perf_counter()
     if noise is None:
@@ -345,13 +347,16 @@ def detect_up_side(model: Network, points: np.ndarray, T_input_bed: np.ndarray,
                    cluster_config: ClusterConfig = ClusterConfig(), zoom: float | None = None,
                    readings: int = LIVE_READINGS) -> tuple[np.ndarray, np.ndarray, SceneResult]:
     """T_input_bed turned to the side of the bed plane its caps say is up (``fusion.bed.side_with_caps``),
-    the cloud in that bed frame (smoothed when noisy, as ``detect_points`` does), and its caps. The
-    cloud is read once in each frame (the turned one not at all when it holds too few voxels to win),
-    and the chosen frame's reading is the first of its ``readings``."""
+    the cloud in that bed frame (as given: the network reads it smoothed when noisy, as
+    ``detect_points`` does), and its caps. The cloud is read once in each frame (the turned one not at
+    all when it holds too few voxels to win), and the chosen frame's reading is the first of its
+    ``readings``."""
     from fusion.bed import side_with_caps
 
     inputs, readings_made = {}, {}
-    points, noise = smoothed(points, model.point_spacing)
+    start = time.perf_counter()
+    given, (points, noise) = points, smoothed(points, model.point_spacing)
+    smoothing_ms = 1000 * (time.perf_counter() - start)
 
     def read_input(T: np.ndarray) -> tuple:
         if T.tobytes() not in inputs:
@@ -368,8 +373,11 @@ def detect_up_side(model: Network, points: np.ndarray, T_input_bed: np.ndarray,
         return len(read_input(T)[1][2])
 
     T_input_bed = side_with_caps(T_input_bed, cap_voxels, voxel_count)
-    bed_points, first = inputs[T_input_bed.tobytes()][0], readings_made[T_input_bed.tobytes()]
-    return T_input_bed, bed_points, detect_points(model, bed_points, cluster_config, zoom, readings, first, noise)
+    read_points, first = inputs[T_input_bed.tobytes()][0], readings_made[T_input_bed.tobytes()]
+    result = detect_points(model, read_points, cluster_config, zoom, readings, first, noise)
+    result.timings_ms["smoothing"] = smoothing_ms
+    bed_points = read_points if points is given else transform_points(np.linalg.inv(T_input_bed), given)
+    return T_input_bed, bed_points, result
 
 
 def detect_cloud(model: Network, points: np.ndarray, cluster_config: ClusterConfig = ClusterConfig(),

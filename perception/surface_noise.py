@@ -26,7 +26,7 @@ NOISY_NOISE = 0.65
 reads 0.58-0.73, OAK-class stereo views fused 0.67-0.72."""
 FIT_NEIGHBOURS = 32
 """Neighbours each point's quadric is fitted to: about 9 mm around a point every 3 mm."""
-SMOOTHING_PASSES = 3
+SMOOTHING_PASSES = 5
 """Quadric projections made one after another: fused stereo views disagree over several millimetres,
 and repeated local fits even them out where one wide fit would round the caps off."""
 
@@ -34,20 +34,23 @@ and repeated local fits even them out where one wide fit would round the caps of
 def surface_noise(points: np.ndarray, spacing: float | None = None) -> float:
     """The median scatter of points about the plane of their ``NOISE_NEIGHBOURS`` nearest (the root
     mean square distance from it), over their median nearest-neighbour distance; nan for fewer than
-    ``NOISE_NEIGHBOURS`` points. With ``spacing``, measured on one point per ``spacing`` cell of a
-    denser cloud, as the network reads it."""
+    ``NOISE_NEIGHBOURS`` points or points that mostly coincide. With ``spacing``, measured on one point
+    per ``spacing`` cell, the sites ``smoothed`` fits its quadrics to."""
     from scipy.spatial import cKDTree
 
     points = np.asarray(points, np.float64)
-    if spacing:
+    if len(points) >= NOISE_NEIGHBOURS and spacing:
         points = points[voxel_representatives(points, spacing)]
     if len(points) < NOISE_NEIGHBOURS:
         return float("nan")
     queries = points[np.random.default_rng(0).choice(len(points), min(NOISE_SAMPLES, len(points)), replace=False)]
     distance, index = cKDTree(points, balanced_tree=False).query(queries, NOISE_NEIGHBOURS, workers=-1)
+    spacing_between = float(np.median(distance[:, 1]))
+    if not spacing_between > 0:
+        return float("nan")
     offsets = points[index] - points[index].mean(1, keepdims=True)
-    least_variance = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", offsets, offsets) / NOISE_NEIGHBOURS)[:, 0]
-    return float(np.median(np.sqrt(np.maximum(least_variance, 0.0))) / max(np.median(distance[:, 1]), 1e-12))
+    least_variance = np.linalg.eigvalsh(offsets.transpose(0, 2, 1) @ offsets / NOISE_NEIGHBOURS)[:, 0]
+    return float(np.median(np.sqrt(np.maximum(least_variance, 0.0))) / spacing_between)
 
 
 def smoothing_share(noise: float) -> float:
@@ -76,15 +79,14 @@ def quadric_projection(points: np.ndarray, sites: np.ndarray | None = None, k: i
         neighbours = sites[tree.query(queries, k, workers=-1)[1]]
         mean = neighbours.mean(1)
         offsets = neighbours - mean[:, None]
-        axes = np.linalg.eigh(np.einsum("nki,nkj->nij", offsets, offsets))[1]
-        local = np.einsum("nki,nij->nkj", offsets, axes)  # columns: height, then the two in-plane axes
-        normal_equations = _quadric_terms(local[..., 1], local[..., 2])
-        coefficients = np.linalg.solve(np.einsum("nki,nkj->nij", normal_equations, normal_equations)
-                                       + 1e-12 * np.eye(6),
-                                       np.einsum("nki,nk->ni", normal_equations, local[..., 0])[..., None])[..., 0]
-        query = np.einsum("ni,nij->nj", queries - mean, axes)
+        axes = np.linalg.eigh(offsets.transpose(0, 2, 1) @ offsets)[1]
+        local = offsets @ axes  # columns: height, then the two in-plane axes
+        design = _quadric_terms(local[..., 1], local[..., 2])
+        design_t = design.transpose(0, 2, 1)
+        coefficients = np.linalg.solve(design_t @ design + 1e-12 * np.eye(6), design_t @ local[..., :1])[..., 0]
+        query = ((queries - mean)[:, None] @ axes)[:, 0]
         query[:, 0] = np.einsum("ni,ni->n", _quadric_terms(query[:, 1], query[:, 2]), coefficients)
-        moved[start:start + chunk] = mean + np.einsum("nj,nij->ni", query, axes)
+        moved[start:start + chunk] = mean + (query[:, None] @ axes.transpose(0, 2, 1))[:, 0]
     return moved
 
 
@@ -94,16 +96,17 @@ def _quadric_terms(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def smoothed(points: np.ndarray, spacing: float | None = None) -> tuple[np.ndarray, float]:
-    """The cloud with its surface noise smoothed away as far as ``smoothing_share`` says (in
-    ``SMOOTHING_PASSES`` quadric projections), and its ``surface_noise``; a clean cloud comes back as
-    the same array. With ``spacing``, the quadrics are fitted to one point per ``spacing`` cell of a
-    denser cloud, the density the network reads."""
-    points = np.asarray(points, np.float64)
+    """The cloud smoothed (``SMOOTHING_PASSES`` quadric projections, each fitted to the last one's
+    points) and blended with itself by ``smoothing_share``, and its ``surface_noise``; a clean cloud
+    comes back as the very array given. With ``spacing``, the quadrics are fitted to one point per
+    ``spacing`` cell of a denser cloud."""
     noise = surface_noise(points, spacing)
     share = smoothing_share(noise)
     if share == 0.0:
         return points, noise
-    keep_as_sites = voxel_representatives(points, spacing) if spacing else slice(None)
+    original = np.asarray(points, np.float64)
+    sites = voxel_representatives(original, spacing) if spacing else slice(None)
+    moved = original
     for _ in range(SMOOTHING_PASSES):
-        points = points + share * (quadric_projection(points, points[keep_as_sites]) - points)
-    return points, noise
+        moved = quadric_projection(moved, moved[sites])
+    return original + share * (moved - original), noise

@@ -1,13 +1,15 @@
 """A cloud's surface noise and the smoothing of noisy clouds before the network reads them: the measure
-grows with the scatter and holds still with the density, a clean cloud passes unchanged, a noisy dome
-comes back near its true surface without being flattened, and a noisy single-view bed gives more of its
-caps once smoothed."""
+grows with the scatter and holds still with the density, a clean or odd cloud passes unchanged, points
+on a quadric stay on it, a partial share blends linearly, a noisy dome comes back near its true surface
+without being flattened, a noisy single-view bed gives more of its caps once smoothed, and ``detect``
+smooths once, says so, and plans on the cloud as given."""
 
 import numpy as np
 import pytest
 
 from perception.evaluate import evaluate, visible_truth
-from perception.surface_noise import CLEAN_NOISE, NOISY_NOISE, smoothed, smoothing_share, surface_noise
+from perception.surface_noise import (CLEAN_NOISE, NOISY_NOISE, quadric_projection, smoothed, smoothing_share,
+                                      surface_noise)
 from perception.synthetic.families import FAMILIES, family_seeds
 from perception.synthetic.scene import SceneConfig, generate_scene
 
@@ -105,3 +107,54 @@ def test_detect_says_when_it_smoothed_a_cloud(tmp_path):
         assert result.returncode == 0, result.stderr
         said[name] = "were smoothed" in result.stderr
     assert said == {"noisy": True, "clean": False}
+
+
+def test_points_on_a_tilted_quadric_stay_on_it():
+    xy = grid(0.003, 0.05)
+    surface = np.column_stack([xy, 0.3 * xy[:, 0] - 0.2 * xy[:, 1] + 4.0 * xy[:, 0] ** 2 + 2.0 * xy[:, 0] * xy[:, 1]])
+    from scipy.spatial.transform import Rotation
+
+    turned = surface @ Rotation.from_euler("xyz", [25, -40, 70], degrees=True).as_matrix().T
+    assert np.abs(quadric_projection(turned) - turned).max() < 2e-5
+
+
+def test_a_partial_share_blends_the_smoothed_cloud_in_linearly(monkeypatch):
+    import perception.surface_noise as surface_noise_module
+
+    noisy, _ = dome(0.003, 0.004)
+    full, noise = smoothed(noisy, 0.003)
+    monkeypatch.setattr(surface_noise_module, "surface_noise", lambda points, spacing=None: (CLEAN_NOISE + NOISY_NOISE) / 2)
+    half, _ = surface_noise_module.smoothed(noisy, 0.003)
+    np.testing.assert_allclose(half, noisy + 0.5 * (full - noisy), atol=1e-12)
+
+
+def test_odd_clouds_are_read_as_they_are():
+    points, _ = dome(0.003, 0.0002)
+    assert np.isnan(surface_noise(np.zeros((0, 3)), 0.003)) and np.isnan(surface_noise(points[:10], 0.003))
+    assert np.isnan(surface_noise(np.repeat(points, 2, axis=0)))  # every point twice: no spacing to measure
+    as_float32 = points.astype(np.float32)
+    assert smoothed(as_float32, 0.003)[0] is as_float32
+    assert smoothed(np.zeros((0, 3)), 0.003)[0].shape == (0, 3)
+
+
+def test_detect_smooths_once_and_plans_on_the_cloud_as_given(monkeypatch):
+    import perception.detect as detect_module
+    from fusion.bed import estimate_bed_frame
+    from perception.weights import DEFAULT_WEIGHTS, load_inference_net
+
+    calls = []
+
+    def counted(points, spacing=None):
+        calls.append(len(points))
+        return smoothed(points, spacing)
+
+    monkeypatch.setattr(detect_module, "smoothed", counted)
+    model = load_inference_net(DEFAULT_WEIGHTS)[0]
+    points = generate_scene(family_seeds("single-view", 1)[0], FAMILIES["single-view"].config).points.astype(np.float64)
+    T_input_bed, bed_points, result = detect_module.detect_up_side(model, points, estimate_bed_frame(points))
+    assert len(calls) == 1 and result.surface_noise > NOISY_NOISE and "smoothing" in result.timings_ms
+    np.testing.assert_allclose(bed_points, (points - T_input_bed[:3, 3]) @ T_input_bed[:3, :3], atol=1e-9)
+    detect_module.detect_points(model, bed_points)
+    assert len(calls) == 2
+    with pytest.raises(ValueError, match="give their noise"):
+        detect_module.detect_points(model, bed_points, first=detect_module.first_reading(model, bed_points))
