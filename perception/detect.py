@@ -326,7 +326,7 @@ def detect_points(model: Network, points: np.ndarray, cluster_config: ClusterCon
     ``first`` is its first reading when one was made already, and ``noise`` the cloud's surface noise
     when it was measured (and the cloud smoothed) already: both come from the same, final, points."""
     if first is not None and noise is None:
-        raise ValueError("a first reading was made on points already smoothed or not: give their noise too")
+        raise ValueError("a first reading needs the surface noise of the points it read: give noise too")
     timings = {}
     start = time.perf_counter()
     if noise is None:

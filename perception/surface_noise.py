@@ -31,6 +31,17 @@ SMOOTHING_PASSES = 5
 and repeated local fits even them out where one wide fit would round the caps off."""
 
 
+def _neighbourhoods(tree, sites: np.ndarray, queries: np.ndarray, k: int):
+    """Per query: the distances to its ``k`` nearest ``sites`` (``tree`` is theirs), those sites'
+    offsets from their mean, the mean, and the eigenvalues and axes of their scatter (least first)."""
+    distance, index = tree.query(queries, k, workers=-1)
+    neighbours = sites[index]
+    mean = neighbours.mean(1)
+    offsets = neighbours - mean[:, None]
+    values, axes = np.linalg.eigh(offsets.transpose(0, 2, 1) @ offsets)
+    return distance, offsets, mean, values, axes
+
+
 def surface_noise(points: np.ndarray, spacing: float | None = None) -> float:
     """The median scatter of points about the plane of their ``NOISE_NEIGHBOURS`` nearest (the root
     mean square distance from it), over their median nearest-neighbour distance; nan for fewer than
@@ -44,13 +55,11 @@ def surface_noise(points: np.ndarray, spacing: float | None = None) -> float:
     if len(points) < NOISE_NEIGHBOURS:
         return float("nan")
     queries = points[np.random.default_rng(0).choice(len(points), min(NOISE_SAMPLES, len(points)), replace=False)]
-    distance, index = cKDTree(points, balanced_tree=False).query(queries, NOISE_NEIGHBOURS, workers=-1)
+    distance, _, _, values, _ = _neighbourhoods(cKDTree(points, balanced_tree=False), points, queries, NOISE_NEIGHBOURS)
     spacing_between = float(np.median(distance[:, 1]))
     if not spacing_between > 0:
         return float("nan")
-    offsets = points[index] - points[index].mean(1, keepdims=True)
-    least_variance = np.linalg.eigvalsh(offsets.transpose(0, 2, 1) @ offsets / NOISE_NEIGHBOURS)[:, 0]
-    return float(np.median(np.sqrt(np.maximum(least_variance, 0.0))) / spacing_between)
+    return float(np.median(np.sqrt(np.maximum(values[:, 0] / NOISE_NEIGHBOURS, 0.0))) / spacing_between)
 
 
 def smoothing_share(noise: float) -> float:
@@ -76,10 +85,7 @@ def quadric_projection(points: np.ndarray, sites: np.ndarray | None = None, k: i
     moved = np.empty_like(points)
     for start in range(0, len(points), chunk):
         queries = points[start:start + chunk]
-        neighbours = sites[tree.query(queries, k, workers=-1)[1]]
-        mean = neighbours.mean(1)
-        offsets = neighbours - mean[:, None]
-        axes = np.linalg.eigh(offsets.transpose(0, 2, 1) @ offsets)[1]
+        _, offsets, mean, _, axes = _neighbourhoods(tree, sites, queries, k)
         local = offsets @ axes  # columns: height, then the two in-plane axes
         design = _quadric_terms(local[..., 1], local[..., 2])
         design_t = design.transpose(0, 2, 1)
@@ -100,12 +106,12 @@ def smoothed(points: np.ndarray, spacing: float | None = None) -> tuple[np.ndarr
     points) and blended with itself by ``smoothing_share``, and its ``surface_noise``; a clean cloud
     comes back as the very array given. With ``spacing``, the quadrics are fitted to one point per
     ``spacing`` cell of a denser cloud."""
-    noise = surface_noise(points, spacing)
+    original = np.asarray(points, np.float64)
+    sites = voxel_representatives(original, spacing) if spacing and len(original) else slice(None)
+    noise = surface_noise(original[sites])
     share = smoothing_share(noise)
     if share == 0.0:
         return points, noise
-    original = np.asarray(points, np.float64)
-    sites = voxel_representatives(original, spacing) if spacing else slice(None)
     moved = original
     for _ in range(SMOOTHING_PASSES):
         moved = quadric_projection(moved, moved[sites])

@@ -156,5 +156,5 @@ def test_detect_smooths_once_and_plans_on_the_cloud_as_given(monkeypatch):
     np.testing.assert_allclose(bed_points, (points - T_input_bed[:3, 3]) @ T_input_bed[:3, :3], atol=1e-9)
     detect_module.detect_points(model, bed_points)
     assert len(calls) == 2
-    with pytest.raises(ValueError, match="give their noise"):
+    with pytest.raises(ValueError, match="give noise too"):
         detect_module.detect_points(model, bed_points, first=detect_module.first_reading(model, bed_points))
