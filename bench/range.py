@@ -36,7 +36,7 @@ DIAMETER_BINS_MM = ((15, 30), (30, 45), (45, 60), (60, 80), (80, 100), (100, 120
 def score(model, scenes, readings: int) -> tuple[float, float, int]:
     preds, gts = [], []
     for scene in scenes:
-        _, fit = find_caps(predict(model, scene.points, readings=readings), model.config.voxel)
+        _, fit = find_caps(predict(model, scene.points, readings=readings), model.config.voxel, points=scene.points)
         preds.append(fit)
         visible = ground_truth_mask(scene)
         gts.append(Caps(scene.centers[visible], scene.rotations[visible], scene.scales[visible]))

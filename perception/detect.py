@@ -292,11 +292,12 @@ def merge_pieces(labels: np.ndarray, fit: Caps, ratio: float) -> np.ndarray | No
 
 def find_caps(prediction: VoxelPrediction, voxel: float, cluster_config: ClusterConfig = ClusterConfig(),
               height: str = "free", axis: str = "surface", timings: dict | None = None,
-              radius: str = "rim") -> tuple[np.ndarray, Caps]:
+              radius: str = "rim", points: np.ndarray | None = None) -> tuple[np.ndarray, Caps]:
     """Voxel labels and fitted caps from the network's encoding: clusters of collapsed points, their
     poses, pieces of one cap merged (``ClusterConfig.merge_ratio``, at most three rounds), and each
-    cap's radius measured on its voxels (``with_rim_radii``; ``radius="fit"`` keeps the ellipsoid's s,
-    as the paper does)."""
+    cap's radius measured on its own points (``with_rim_radii``: ``points``, the cloud the prediction
+    was made of, each labelled by its voxel; without them, the voxel centroids). ``radius="fit"`` keeps
+    the pose fit's s, as the paper does."""
     if radius not in RADIUS_MODES:
         raise ValueError(f"unknown radius mode {radius!r}; choose one of {RADIUS_MODES}")
     timings = {} if timings is None else timings
@@ -313,7 +314,10 @@ def find_caps(prediction: VoxelPrediction, voxel: float, cluster_config: Cluster
         labels = merged
         fit = fit_caps(*arguments, labels, height, axis)
     if radius == "rim":
-        fit = with_rim_radii(fit, prediction.centroids, labels)
+        if points is None:
+            fit = with_rim_radii(fit, prediction.centroids, labels)
+        else:
+            fit = with_rim_radii(fit, np.asarray(points, np.float64), labels[prediction.point_to_voxel])
     timings["pose"] = 1000 * (time.perf_counter() - start)
     return labels, fit
 
@@ -335,7 +339,7 @@ def detect_points(model: Network, points: np.ndarray, cluster_config: ClusterCon
         start = time.perf_counter()
     prediction = predict(model, points, zoom=zoom, readings=readings, first=first)
     timings["network"] = 1000 * (time.perf_counter() - start)
-    voxel_labels, fit = find_caps(prediction, model.config.voxel, cluster_config, timings=timings)
+    voxel_labels, fit = find_caps(prediction, model.config.voxel, cluster_config, timings=timings, points=points)
     fit = model.calibration.applied(fit)
     point_labels = voxel_labels[prediction.point_to_voxel]
     members = np.bincount(point_labels[point_labels >= 0], minlength=len(fit))

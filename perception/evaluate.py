@@ -320,10 +320,12 @@ def scene_caps(model: MushroomNet, scene, methods, height: str, axis: str, zoom:
     smoothed first, as ``detect`` smooths a cloud (``perception.surface_noise``)."""
     from perception.surface_noise import smoothed
 
-    prediction = predict(model, smoothed(scene.points, model.point_spacing)[0], zoom=zoom, readings=readings)
+    points = smoothed(scene.points, model.point_spacing)[0]
+    prediction = predict(model, points, zoom=zoom, readings=readings)
     found = {}
     for method in methods:
-        caps = find_caps(prediction, model.config.voxel, ClusterConfig(method=method), height, axis, radius=radius)[1]
+        caps = find_caps(prediction, model.config.voxel, ClusterConfig(method=method), height, axis, radius=radius,
+                         points=points)[1]
         found[method] = model.calibration.applied(caps, rim_radii=radius == "rim")
     return found, visible_truth(scene)
 

@@ -114,7 +114,7 @@ def our_rows(model, scenes, truth: list[Caps], progress: bool = False) -> list[R
         network = time.perf_counter() - start
         for method in ("dbscan", "meanshift"):  # one network pass; each method's time is it plus its own
             start = time.perf_counter()
-            labels, fit = find_caps(prediction, model.config.voxel, ClusterConfig(method=method))
+            labels, fit = find_caps(prediction, model.config.voxel, ClusterConfig(method=method), points=scene.points)
             seconds[method].append(network + time.perf_counter() - start)
             found[method].append(fit)
         start = time.perf_counter()

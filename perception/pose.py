@@ -8,7 +8,7 @@ longer depends on e, and b / |lambda| = u . e is the centre's error along the ax
 Without the intercept, e biases the axis towards the vertical.
 
 With the axis known, the ellipsoid equation gives the size (and ``with_rim_radii`` then measures the
-radius on the cap's own points, ``RIM_QUANTILE``). The paper fixes s_z = 2 s / 3 and fits
+radius on the cap's own points: the rim of the dome fitted to them, ``dome_radii``). The paper fixes s_z = 2 s / 3 and fits
 one s (``height="fixed"``); by default we fit s and s_z together, (x^2 + y^2) / s^2 + z^2 / s_z^2 = 1
 being linear in (1 / s^2, 1 / s_z^2), and keep s_z / s within the range real caps span, because caps
 are not all of one shape.
@@ -55,9 +55,12 @@ STEP_LIMITS = np.array([6e-3, 0.45])
 """Largest move of the centre (metres) and turn (radians) in one step of the surface fit; a cap the
 bound lets swing over is caught by the height-ratio gate."""
 RIM_QUANTILE = 0.9
-"""The reported radius is this quantile of a cap's voxels' distances from its axis (``rim_radii``): what
-its own points show. Real caps are shallower domes than the template, so the ellipsoid's s, which
-extrapolates the template's dome to its base, overstates them."""
+"""This quantile of a cap's points' distances from its axis (``rim_radii``) bounds the dome fit's rim
+(``RIM_DOME_RANGE``) and stands in for it where the fit fails."""
+RIM_DOME_RANGE = (0.8, 1.25)
+"""The dome fitted to a cap's own points (``dome_radii``) gives its radius when its rim lies within
+these factors of ``RIM_QUANTILE``'s distance; beyond them the fit extrapolates a crown or a stray piece
+of soil, and the quantile is kept."""
 SURFACE_NOISE_REFERENCE = 3e-4
 """Metres. Up to this median distance of the clusters' points from their fitted surfaces the encoding
 keeps ``SURFACE_ENCODING_WEIGHT`` (``encoding_weight``): above every synthetic camera's noise, below a
@@ -167,11 +170,42 @@ def rim_radii(points: np.ndarray, labels: np.ndarray, caps: Caps, quantile: floa
     return radii
 
 
+def dome_radii(points: np.ndarray, labels: np.ndarray, caps: Caps, min_points: int = 1) -> np.ndarray:
+    """Each cap's rim radius s of the dome (x^2 + y^2) / s^2 + z^2 / s_z^2 = 1 about its centre and axis
+    that fits its points (N, 3; labels 0..K-1, -1 ignored) best, s and s_z both free: least squares in
+    (1 / s^2, 1 / s_z^2), one 2x2 system per cap from per-label sums. nan for a cap with fewer than
+    ``min_points`` or whose best fit is no dome (a bowl or a saddle). Every point of the cap has its
+    say, where a quantile reads the rim from a few; a dome of any height is fitted, where the pose
+    fit holds s_z / s near the template's."""
+    kept = labels >= 0
+    lab = labels[kept]
+    offsets = points[kept] - caps.centers[lab]
+    z2 = np.einsum("ij,ij->i", offsets, caps.axes[lab]) ** 2
+    r2 = np.maximum(np.einsum("ij,ij->i", offsets, offsets) - z2, 0.0)
+    k = len(caps)
+    rr, rz, zz = (np.bincount(lab, w, k) for w in (r2 * r2, r2 * z2, z2 * z2))
+    r_sum, z_sum = np.bincount(lab, r2, k), np.bincount(lab, z2, k)
+    det = rr * zz - rz * rz
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inverse_s2 = (zz * r_sum - rz * z_sum) / det
+        inverse_sz2 = (rr * z_sum - rz * r_sum) / det
+    dome = (np.bincount(lab, minlength=k) >= max(min_points, 1)) & (det > 0) & (inverse_s2 > 0) & (inverse_sz2 > 0)
+    radii = np.full(k, np.nan)
+    radii[dome] = 1.0 / np.sqrt(inverse_s2[dome])
+    return radii
+
+
 def with_rim_radii(caps: Caps, points: np.ndarray, labels: np.ndarray) -> Caps:
-    """The caps with their radius s measured on their own points (``rim_radii``); the height s_z, the
-    centre and the axis stay the fit's. A cap with fewer than ``SURFACE_MIN_POINTS`` keeps its fit."""
+    """The caps with their radius s measured on their own points: the rim of the dome they fit
+    (``dome_radii``), or ``RIM_QUANTILE``'s distance where that dome leaves ``RIM_DOME_RANGE`` of it;
+    the height s_z, the centre and the axis stay the pose fit's. A cap with fewer than
+    ``SURFACE_MIN_POINTS`` keeps its fit."""
     rim = rim_radii(points, labels, caps, min_points=SURFACE_MIN_POINTS)
-    radius = np.where(np.isfinite(rim), rim, caps.radii)
+    dome = dome_radii(points, labels, caps, min_points=SURFACE_MIN_POINTS)
+    low, high = RIM_DOME_RANGE
+    with np.errstate(invalid="ignore"):
+        trusted = (dome >= low * rim) & (dome <= high * rim)
+    radius = np.where(trusted, dome, np.where(np.isfinite(rim), rim, caps.radii))
     return replace(caps, scales=np.column_stack([radius, radius, caps.scales[:, 2]]))
 
 

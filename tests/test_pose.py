@@ -289,8 +289,50 @@ def test_rim_radius_is_the_quantile_of_distances_from_the_axis_on_shallow_domes(
         expected = sphere_radius * np.sqrt(1.0 - (1.0 - quantile * (1.0 - cos_max)) ** 2)
         # 20000 samples: the quantile's sampling error is about 0.2 % here
         assert pose.rim_radii(points, labels, caps)[k] == pytest.approx(expected, rel=0.01)
+
+
+def test_dome_radius_is_the_rim_of_the_ellipsoid_the_points_lie_on():
+    """Points on tilted cap ellipsoids of any height (shallower and taller than the template), shuffled
+    together with an unlabelled stray: each cap's dome gives back its s; with 0.2 mm of noise, within
+    2 %; a flat disc (no height to fit) and a cap with too few points give nan."""
+    rng = np.random.default_rng(11)
+    shapes = [((0.05, -0.02, 0.01), 0.4, -0.2, 0.028, 0.35), ((-0.04, 0.03, 0.0), -0.1, 0.5, 0.012, 0.9),
+              ((0.0, 0.09, 0.02), 0.0, 0.0, 0.035, CAP_HEIGHT_RATIO)]
+    parts = [ideal_cap(np.array(c), tx, ty, 0.3, s, ratio * s, n=3000, seed=i)
+             for i, (c, tx, ty, s, ratio) in enumerate(shapes)]
+    disc = np.column_stack([rng.uniform(-0.01, 0.01, (200, 2)), np.zeros(200)]) + [0.2, 0.2, 0.0]
+    points = np.vstack([p[0] for p in parts] + [disc, [[0.3, 0.3, 0.0]] * 3, [[9.0, 9.0, 9.0]]])
+    labels = np.concatenate([np.full(3000, k) for k in range(3)] + [np.full(200, 3), np.full(3, 4), [-1]])
+    rotations = np.array([p[3] for p in parts] + [np.eye(3)] * 2)
+    centers = np.array([c for c, *_ in shapes] + [(0.2, 0.2, 0.0), (0.3, 0.3, 0.0)])
+    caps = pose.Caps(centers, rotations, np.array([[s, s, r * s] for *_, s, r in shapes] + [[0.01, 0.01, 0.005]] * 2))
+    order = rng.permutation(len(points))
+    radii = pose.dome_radii(points[order], labels[order], caps, min_points=pose.SURFACE_MIN_POINTS)
+    np.testing.assert_allclose(radii[:3], [s for *_, s, _ in shapes], rtol=1e-9)
+    assert np.isnan(radii[3:]).all()
+    noisy = points + rng.normal(0.0, 2e-4, points.shape)
+    np.testing.assert_allclose(pose.dome_radii(noisy, labels, caps)[:3], [s for *_, s, _ in shapes], rtol=0.02)
+
+
+def test_rim_radius_is_the_dome_unless_it_extrapolates_past_the_quantile():
+    """A whole dome reports its dome's s; a crown (elevations 1.0-pi/2 only, whose dome is still exact)
+    lies so far inside its rim that the dome is an extrapolation, and reports the quantile's distance
+    s cos e at e = 1.0 + 0.1 (pi / 2 - 1.0); a flat disc has no dome and reports the quantile too,
+    R sqrt(0.9) for points even over its area; the height, centre and axis stay the caps'."""
+    whole, *_ = ideal_cap(np.zeros(3), 0.2, 0.1, 0.0, 0.02, 0.012, n=4000, seed=1)
+    rng = np.random.default_rng(2)
+    elevation, azimuth = rng.uniform(1.0, np.pi / 2, 4000), rng.uniform(0, 2 * np.pi, 4000)
+    crown = 0.03 * np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
+                             0.6 * np.sin(elevation)], 1) + [0.1, 0.0, 0.0]
+    radius, angle = 0.015 * np.sqrt(rng.uniform(0, 1, 4000)), rng.uniform(0, 2 * np.pi, 4000)
+    disc = np.column_stack([radius * np.cos(angle), radius * np.sin(angle), np.zeros(4000)]) + [0.0, 0.1, 0.0]
+    points, labels = np.vstack([whole, crown, disc]), np.repeat([0, 1, 2], 4000)
+    caps = pose.Caps(np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]]),
+                     np.stack([cap_rotation(0.2, 0.1), np.eye(3), np.eye(3)]),
+                     np.array([[0.05, 0.05, 0.012], [0.05, 0.05, 0.018], [0.05, 0.05, 0.004]]))
     measured = pose.with_rim_radii(caps, points, labels)
-    np.testing.assert_allclose(measured.radii, pose.rim_radii(points, labels, caps))
+    crown_rim = 0.03 * np.cos(1.0 + (1 - pose.RIM_QUANTILE) * (np.pi / 2 - 1.0))
+    np.testing.assert_allclose(measured.radii, [0.02, crown_rim, 0.015 * np.sqrt(pose.RIM_QUANTILE)], rtol=0.01)
     np.testing.assert_array_equal(measured.scales[:, 2], caps.scales[:, 2])
     np.testing.assert_array_equal(measured.centers, caps.centers)
 
@@ -305,9 +347,8 @@ def test_rim_radius_keeps_the_fit_where_a_cap_has_too_few_points():
 
 def test_find_caps_reports_the_rim_radius_and_with_fit_the_ellipsoids():
     """Three ideal caps through the whole instance step: with ``radius="fit"`` the ellipsoid's s comes
-    back exactly; by default the radius is the quantile of the points' distances from the axis, which
-    for ``ideal_cap`` (elevation e even in [0.05, pi / 2], distance s cos e) is s cos e at the
-    (1 - quantile) point of that range."""
+    back exactly, and by default the rim of the dome their points lie on, the same s; with the cloud's
+    points given, measured on them rather than on the voxel centroids."""
     from perception.detect import VoxelPrediction, find_caps
 
     caps = [((0.0, 0.0, 0.01), 0.4, -0.3, 0.02), ((0.1, 0.05, 0.0), -0.6, 0.1, 0.012),
@@ -322,8 +363,10 @@ def test_find_caps_reports_the_rim_radius_and_with_fit_the_ellipsoids():
     order = np.argsort(fitted.radii)
     true_radii = np.sort([s for *_, s in caps])
     np.testing.assert_allclose(fitted.radii[order], true_radii, rtol=1e-6)
-    elevation = 0.05 + (1.0 - pose.RIM_QUANTILE) * (np.pi / 2 - 0.05)
-    np.testing.assert_allclose(measured.radii[order], true_radii * np.cos(elevation), rtol=0.01)
+    np.testing.assert_allclose(measured.radii[order], true_radii, rtol=1e-6)
     np.testing.assert_array_equal(measured.scales[:, 2], fitted.scales[:, 2])
+    # the points each stand for a voxel at their centre's place: 1.1 times as far out, a dome 1.1 times as wide
+    _, on_points = find_caps(prediction, 0.0045, points=1.1 * points - 0.1 * prediction.centers)
+    np.testing.assert_allclose(on_points.radii[order], 1.1 * true_radii, rtol=1e-6)
     with pytest.raises(ValueError, match="radius mode"):
         find_caps(prediction, 0.0045, radius="widest")
