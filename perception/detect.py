@@ -119,6 +119,11 @@ OPERATING_DIAMETER = 0.080
 NEIGHBOUR_PER_SPACING = 0.645
 """Median distance from a point of a synthetic bed to its nearest neighbour, over the bed's point
 spacing: how a cloud's measured neighbour distance is read as a generator's spacing."""
+DENSIFY_SPACING = 0.006
+"""Metres: a cloud whose points lie as far apart as a bed sampled this sparsely (``point_spacing``) is
+filled in to the training beds' spacing before it is read (``perception.densify``), and still read at
+its own spacing's zoom (``reading_zoom``): the filled-in caps lack the steep sides no triangle spans,
+and read smaller they are found as the sparse zoom finds caps."""
 SPARSE_ZOOM_EXPONENT = 0.56
 """How much lower a sparse cloud is read: zoom x (spacing ratio)^-0.56, so a bed sampled every 5 mm is
 read at 0.9 instead of 1.2, where its AP@50 peaks (docs/RESULTS.md, "How the fit's constants were chosen")."""
@@ -150,10 +155,13 @@ class Reading:
     read, at what zoom, their voxels and what it returned; ``predict`` goes on from it."""
 
     kept: np.ndarray
-    """Indices of the points read (``at_training_density``)."""
+    """Indices of the cloud's points read (``at_training_density``)."""
     zoom: float
+    read: np.ndarray
+    """The points read: the kept ones, then those a sparse cloud is filled in with (``densified_for_reading``)."""
     coords: np.ndarray
     kept_to_voxel: np.ndarray
+    """Each read point's voxel."""
     zoomed_centroids: np.ndarray
     output: tuple
     """``network_output``'s centroids, existence, centres and orientation values."""
@@ -164,26 +172,41 @@ class Reading:
         return int((self.output[1] > 0.5).sum())
 
 
+def densified_for_reading(model: Network, points: np.ndarray) -> np.ndarray:
+    """The points (bed frame), followed by those that fill them in to the training beds' spacing when
+    they lie further apart than ``DENSIFY_SPACING`` (``perception.densify``); else the points as given."""
+    from perception.densify import densified
+
+    spacing = point_spacing(points)
+    if not model.point_spacing or not spacing > DENSIFY_SPACING:
+        return points
+    return densified(points, spacing, model.point_spacing)
+
+
 def reading_input(model: Network, points: np.ndarray, thin: bool = True,
-                  zoom: float | None = None) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
-    """What the network's first reading of a non-empty cloud in the bed frame takes in: the points
-    read, the zoom, their voxels, each read point's voxel and the voxels' zoomed centroids."""
+                  zoom: float | None = None) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """What the network's first reading of a non-empty cloud in the bed frame takes in: the indices of
+    the points kept, the zoom (default: the kept points' ``reading_zoom``), the points read (with
+    ``thin``, a dense cloud thinned and a sparse one filled in, ``densified_for_reading``), their
+    voxels, each read point's voxel and the voxels' zoomed centroids."""
     points = np.asarray(points, np.float64)
     kept = at_training_density(model, points) if thin else np.arange(len(points))
     zoom = reading_zoom(model, points[kept]) if zoom is None else zoom
-    reach, grid = float(np.abs(points).max()), COORD_MAX * model.config.voxel / zoom
+    read = densified_for_reading(model, points[kept]) if thin else points[kept]
+    reach, grid = float(np.abs(read).max()), COORD_MAX * model.config.voxel / zoom
     if not reach < grid:
         raise ValueError(f"the cloud reaches {reach:.3g} m from the bed origin, beyond the voxel grid's "
                          f"{grid:.0f} m: bring it near the origin")
-    return kept, zoom, *network_input(zoom * points[kept], model.config.voxel)
+    return kept, zoom, read, *network_input(zoom * read, model.config.voxel)
 
 
 def first_reading(model: Network, points: np.ndarray, thin: bool = True, zoom: float | None = None,
                   read: tuple | None = None) -> Reading:
     """One pass of the network over a non-empty cloud in the bed frame, as ``predict`` reads it first;
     ``read`` is the cloud's ``reading_input`` when it was made already."""
-    kept, zoom, coords, kept_to_voxel, zoomed_centroids = reading_input(model, points, thin, zoom) if read is None else read
-    return Reading(kept, zoom, coords, kept_to_voxel, zoomed_centroids,
+    kept, zoom, points_read, coords, read_to_voxel, zoomed_centroids = (
+        reading_input(model, points, thin, zoom) if read is None else read)
+    return Reading(kept, zoom, points_read, coords, read_to_voxel, zoomed_centroids,
                    network_output(model, coords, zoomed_centroids, zoom))
 
 
@@ -195,7 +218,9 @@ def predict(model: Network, points: np.ndarray, thin: bool = True,
     scenes' voxel; None: unknown, never thin). A much denser cloud (fused, or straight from a camera)
     is an input it never saw, and the network misreads it. So with ``thin``, such a cloud is first
     thinned (``at_training_density``), and points whose voxel lost its points take the prediction of
-    the nearest kept voxel. Clouds at training density are used as they are. The network then reads the cloud scaled by ``zoom`` (default:
+    the nearest kept voxel; a much sparser one is filled in (``densified_for_reading``), and only the
+    cloud's own points are labelled. Clouds at training density are used as they are. The network then
+    reads the cloud scaled by ``zoom`` (default:
     ``reading_zoom``); what it returns is in the cloud's own metres again. With ``readings`` over 1 the
     network reads the cloud that many times, turned about the vertical, and each voxel's encoding is
     the mean of the readings' (``LIVE_READINGS`` and ``FILE_READINGS`` say when). ``first``, the
@@ -211,13 +236,14 @@ def predict(model: Network, points: np.ndarray, thin: bool = True,
     kept, zoom = first.kept, first.zoom
     centroids, existence, centers, orientation = first.output
     if readings > 1:
-        existence, centers, orientation = _averaged_readings(model, points[kept], zoom, readings, first.kept_to_voxel,
+        existence, centers, orientation = _averaged_readings(model, first.read, zoom, readings, first.kept_to_voxel,
                                                              (existence, centers, orientation))
+    kept_to_voxel = first.kept_to_voxel[:len(kept)]  # the points filled in come after the kept ones
     if len(kept) == len(points):
-        point_to_voxel = first.kept_to_voxel
+        point_to_voxel = kept_to_voxel
     else:
         point_to_voxel = _nearest_voxel(zoom * points, model.config.voxel, first.coords, first.zoomed_centroids)
-        point_to_voxel[kept] = first.kept_to_voxel
+        point_to_voxel[kept] = kept_to_voxel
     return VoxelPrediction(centroids, existence, centers, orientation, point_to_voxel)
 
 
@@ -374,7 +400,7 @@ def detect_up_side(model: Network, points: np.ndarray, T_input_bed: np.ndarray,
         return readings_made[T.tobytes()].cap_voxels
 
     def voxel_count(T: np.ndarray) -> int:
-        return len(read_input(T)[1][2])
+        return len(read_input(T)[1][3])
 
     T_input_bed = side_with_caps(T_input_bed, cap_voxels, voxel_count)
     read_points, first = inputs[T_input_bed.tobytes()][0], readings_made[T_input_bed.tobytes()]

@@ -351,15 +351,17 @@ def test_eval_radius_fit_sizes_the_same_caps_by_the_ellipsoid(tmp_path, monkeypa
 
 
 def test_detect_warns_outside_the_operating_range(tmp_path, weights):
-    """A bed sampled every 5 mm is sparser than the model holds to; the same bed at 3 mm is not. The
-    tiny model finds no caps on either, which detect also says."""
-    for spacing in (0.003, 0.005):
+    """A bed sampled every 5 mm is sparser than the model holds to, and one sampled every 8 mm is also
+    filled in before reading; the same bed at 3 mm is neither. The tiny model finds no caps on any,
+    which detect also says."""
+    for spacing in (0.003, 0.005, 0.008):
         scene = generate_scene(11, SceneConfig(spacing=spacing, jitter=(1.0, 1.0)))
         cloud = write_ply(tmp_path / f"bed{spacing}.ply", scene.points)
         result = run("detect", cloud, "--out", tmp_path / f"d{spacing}.json", "--model", weights, "--bed-frame")
         assert result.returncode == 0, result.stderr
         sparse = [line for line in result.stderr.splitlines() if "lie as far apart" in line]
-        assert len(sparse) == (spacing == 0.005)
+        assert len(sparse) == (spacing > 0.003)
+        assert all(("filled in" in line) == (spacing == 0.008) for line in sparse)
         assert "warning: no caps" in result.stderr
 
 
