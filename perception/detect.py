@@ -14,7 +14,7 @@ from perception.cap import Caps
 from perception.inference import COORD_MAX, InferenceNet, voxelize
 from perception.instances import ClusterConfig, cluster
 from perception.network import LENGTH_UNIT, voxel_features
-from perception.pose import RADIUS_MODES, fit_caps, with_rim_radii
+from perception.pose import RADIUS_MODES, fit_caps, with_dome_sizes
 from perception.surface_noise import smoothed
 
 if TYPE_CHECKING:
@@ -321,9 +321,9 @@ def find_caps(prediction: VoxelPrediction, voxel: float, cluster_config: Cluster
               radius: str = "rim", points: np.ndarray | None = None) -> tuple[np.ndarray, Caps]:
     """Voxel labels and fitted caps from the network's encoding: clusters of collapsed points, their
     poses, pieces of one cap merged (``ClusterConfig.merge_ratio``, at most three rounds), and each
-    cap's radius measured on its own points (``with_rim_radii``: ``points``, the cloud the prediction
-    was made of, each labelled by its voxel; without them, the voxel centroids). ``radius="fit"`` keeps
-    the pose fit's s, as the paper does."""
+    cap's radius and height measured on its own points (``with_dome_sizes``: ``points``, the cloud the
+    prediction was made of, each labelled by its voxel; without them, the voxel centroids).
+    ``radius="fit"`` keeps the pose fit's s and s_z, as the paper does."""
     if radius not in RADIUS_MODES:
         raise ValueError(f"unknown radius mode {radius!r}; choose one of {RADIUS_MODES}")
     timings = {} if timings is None else timings
@@ -341,9 +341,9 @@ def find_caps(prediction: VoxelPrediction, voxel: float, cluster_config: Cluster
         fit = fit_caps(*arguments, labels, height, axis)
     if radius == "rim":
         if points is None:
-            fit = with_rim_radii(fit, prediction.centroids, labels)
+            fit = with_dome_sizes(fit, prediction.centroids, labels)
         else:
-            fit = with_rim_radii(fit, np.asarray(points, np.float64), labels[prediction.point_to_voxel])
+            fit = with_dome_sizes(fit, np.asarray(points, np.float64), labels[prediction.point_to_voxel])
     timings["pose"] = 1000 * (time.perf_counter() - start)
     return labels, fit
 

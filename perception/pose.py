@@ -7,8 +7,8 @@ lambda . e exactly: so we solve for an intercept too, [P - c', 1] (lambda, b) = 
 longer depends on e, and b / |lambda| = u . e is the centre's error along the axis, which we take off.
 Without the intercept, e biases the axis towards the vertical.
 
-With the axis known, the ellipsoid equation gives the size (and ``with_rim_radii`` then measures the
-radius on the cap's own points: the rim of the dome fitted to them, ``dome_radii``). The paper fixes s_z = 2 s / 3 and fits
+With the axis known, the ellipsoid equation gives the size (and ``with_dome_sizes`` then measures the
+radius and height on the cap's own points: the dome fitted to them, ``fit_domes``). The paper fixes s_z = 2 s / 3 and fits
 one s (``height="fixed"``); by default we fit s and s_z together, (x^2 + y^2) / s^2 + z^2 / s_z^2 = 1
 being linear in (1 / s^2, 1 / s_z^2), and keep s_z / s within the range real caps span, because caps
 are not all of one shape.
@@ -58,9 +58,9 @@ RIM_QUANTILE = 0.9
 """This quantile of a cap's points' distances from its axis (``rim_radii``) bounds the dome fit's rim
 (``RIM_DOME_RANGE``) and stands in for it where the fit fails."""
 RIM_DOME_RANGE = (0.8, 1.25)
-"""The dome fitted to a cap's own points (``dome_radii``) gives its radius when its rim lies within
-these factors of ``RIM_QUANTILE``'s distance; beyond them the fit extrapolates a crown or a stray piece
-of soil, and the quantile is kept."""
+"""The dome fitted to a cap's own points (``fit_domes``) gives its radius and height when its rim lies
+within these factors of ``RIM_QUANTILE``'s distance; beyond them the fit extrapolates a crown or a stray
+piece of soil, and the quantile and the pose fit's height are kept."""
 SURFACE_NOISE_REFERENCE = 3e-4
 """Metres. Up to this median distance of the clusters' points from their fitted surfaces the encoding
 keeps ``SURFACE_ENCODING_WEIGHT`` (``encoding_weight``): above every synthetic camera's noise, below a
@@ -170,13 +170,13 @@ def rim_radii(points: np.ndarray, labels: np.ndarray, caps: Caps, quantile: floa
     return radii
 
 
-def dome_radii(points: np.ndarray, labels: np.ndarray, caps: Caps, min_points: int = 1) -> np.ndarray:
-    """Each cap's rim radius s of the dome (x^2 + y^2) / s^2 + z^2 / s_z^2 = 1 about its centre and axis
-    that fits its points (N, 3; labels 0..K-1, -1 ignored) best, s and s_z both free: least squares in
-    (1 / s^2, 1 / s_z^2), one 2x2 system per cap from per-label sums. nan for a cap with fewer than
-    ``min_points`` or whose best fit is no dome (a bowl or a saddle). Every point of the cap has its
-    say, where a quantile reads the rim from a few; a dome of any height is fitted, where the pose
-    fit holds s_z / s near the template's."""
+def fit_domes(points: np.ndarray, labels: np.ndarray, caps: Caps, min_points: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Each cap's rim radius s and height s_z of the dome (x^2 + y^2) / s^2 + z^2 / s_z^2 = 1 about its
+    centre and axis that fits its points (N, 3; labels 0..K-1, -1 ignored) best, both free: least
+    squares in (1 / s^2, 1 / s_z^2), one 2x2 system per cap from per-label sums. nan for a cap with
+    fewer than ``min_points`` or whose best fit is no dome (a bowl or a saddle). Every point of the cap
+    has its say, where a quantile reads the rim from a few; a dome of any height is fitted, where the
+    pose fit holds s_z / s near the template's."""
     kept = labels >= 0
     lab = labels[kept]
     offsets = points[kept] - caps.centers[lab]
@@ -190,23 +190,24 @@ def dome_radii(points: np.ndarray, labels: np.ndarray, caps: Caps, min_points: i
         inverse_s2 = (zz * r_sum - rz * z_sum) / det
         inverse_sz2 = (rr * z_sum - rz * r_sum) / det
     dome = (np.bincount(lab, minlength=k) >= max(min_points, 1)) & (det > 0) & (inverse_s2 > 0) & (inverse_sz2 > 0)
-    radii = np.full(k, np.nan)
-    radii[dome] = 1.0 / np.sqrt(inverse_s2[dome])
-    return radii
+    radii, heights = np.full(k, np.nan), np.full(k, np.nan)
+    radii[dome], heights[dome] = 1.0 / np.sqrt(inverse_s2[dome]), 1.0 / np.sqrt(inverse_sz2[dome])
+    return radii, heights
 
 
-def with_rim_radii(caps: Caps, points: np.ndarray, labels: np.ndarray) -> Caps:
-    """The caps with their radius s measured on their own points: the rim of the dome they fit
-    (``dome_radii``), or ``RIM_QUANTILE``'s distance where that dome leaves ``RIM_DOME_RANGE`` of it;
-    the height s_z, the centre and the axis stay the pose fit's. A cap with fewer than
-    ``SURFACE_MIN_POINTS`` keeps its fit."""
+def with_dome_sizes(caps: Caps, points: np.ndarray, labels: np.ndarray) -> Caps:
+    """The caps with their radius s and height s_z measured on their own points: the dome they fit
+    (``fit_domes``), or where that dome's rim leaves ``RIM_DOME_RANGE`` of ``RIM_QUANTILE``'s distance,
+    that distance and the pose fit's height; the centre and the axis stay the pose fit's. A cap with
+    fewer than ``SURFACE_MIN_POINTS`` keeps its fit."""
     rim = rim_radii(points, labels, caps, min_points=SURFACE_MIN_POINTS)
-    dome = dome_radii(points, labels, caps, min_points=SURFACE_MIN_POINTS)
+    radii, heights = fit_domes(points, labels, caps, min_points=SURFACE_MIN_POINTS)
     low, high = RIM_DOME_RANGE
     with np.errstate(invalid="ignore"):
-        trusted = (dome >= low * rim) & (dome <= high * rim)
-    radius = np.where(trusted, dome, np.where(np.isfinite(rim), rim, caps.radii))
-    return replace(caps, scales=np.column_stack([radius, radius, caps.scales[:, 2]]))
+        trusted = (radii >= low * rim) & (radii <= high * rim)
+    radius = np.where(trusted, radii, np.where(np.isfinite(rim), rim, caps.radii))
+    height = np.where(trusted, heights, caps.scales[:, 2])
+    return replace(caps, scales=np.column_stack([radius, radius, height]))
 
 
 def _fit_explicit_axes(clusters: _Clusters, p: np.ndarray, centers: np.ndarray, scores: np.ndarray,

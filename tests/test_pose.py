@@ -291,10 +291,10 @@ def test_rim_radius_is_the_quantile_of_distances_from_the_axis_on_shallow_domes(
         assert pose.rim_radii(points, labels, caps)[k] == pytest.approx(expected, rel=0.01)
 
 
-def test_dome_radius_is_the_rim_of_the_ellipsoid_the_points_lie_on():
+def test_the_dome_is_the_ellipsoid_the_points_lie_on():
     """Points on tilted cap ellipsoids of any height (shallower and taller than the template), shuffled
-    together with an unlabelled stray: each cap's dome gives back its s; with 0.2 mm of noise, within
-    2 %; a flat disc (no height to fit) and a cap with too few points give nan."""
+    together with an unlabelled stray: each cap's dome gives back its s and s_z; with 0.2 mm of noise,
+    within 2 %; a flat disc (no height to fit) and a cap with too few points give nan."""
     rng = np.random.default_rng(11)
     shapes = [((0.05, -0.02, 0.01), 0.4, -0.2, 0.028, 0.35), ((-0.04, 0.03, 0.0), -0.1, 0.5, 0.012, 0.9),
               ((0.0, 0.09, 0.02), 0.0, 0.0, 0.035, CAP_HEIGHT_RATIO)]
@@ -307,18 +307,22 @@ def test_dome_radius_is_the_rim_of_the_ellipsoid_the_points_lie_on():
     centers = np.array([c for c, *_ in shapes] + [(0.2, 0.2, 0.0), (0.3, 0.3, 0.0)])
     caps = pose.Caps(centers, rotations, np.array([[s, s, r * s] for *_, s, r in shapes] + [[0.01, 0.01, 0.005]] * 2))
     order = rng.permutation(len(points))
-    radii = pose.dome_radii(points[order], labels[order], caps, min_points=pose.SURFACE_MIN_POINTS)
+    radii, heights = pose.fit_domes(points[order], labels[order], caps, min_points=pose.SURFACE_MIN_POINTS)
     np.testing.assert_allclose(radii[:3], [s for *_, s, _ in shapes], rtol=1e-9)
-    assert np.isnan(radii[3:]).all()
+    np.testing.assert_allclose(heights[:3], [r * s for *_, s, r in shapes], rtol=1e-9)
+    assert np.isnan(radii[3:]).all() and np.isnan(heights[3:]).all()
     noisy = points + rng.normal(0.0, 2e-4, points.shape)
-    np.testing.assert_allclose(pose.dome_radii(noisy, labels, caps)[:3], [s for *_, s, _ in shapes], rtol=0.02)
+    radii, heights = pose.fit_domes(noisy, labels, caps)
+    np.testing.assert_allclose(radii[:3], [s for *_, s, _ in shapes], rtol=0.02)
+    np.testing.assert_allclose(heights[:3], [r * s for *_, s, r in shapes], rtol=0.03)
 
 
-def test_rim_radius_is_the_dome_unless_it_extrapolates_past_the_quantile():
-    """A whole dome reports its dome's s; a crown (elevations 1.0-pi/2 only, whose dome is still exact)
-    lies so far inside its rim that the dome is an extrapolation, and reports the quantile's distance
-    s cos e at e = 1.0 + 0.1 (pi / 2 - 1.0); a flat disc has no dome and reports the quantile too,
-    R sqrt(0.9) for points even over its area; the height, centre and axis stay the caps'."""
+def test_the_size_is_the_dome_unless_it_extrapolates_past_the_quantile():
+    """A whole dome reports its dome's s and s_z; a crown (elevations 1.0-pi/2 only, whose dome is still
+    exact) lies so far inside its rim that the dome is an extrapolation, and reports the quantile's
+    distance s cos e at e = 1.0 + 0.1 (pi / 2 - 1.0); a flat disc has no dome and reports the quantile
+    too, R sqrt(0.9) for points even over its area; those two keep the pose fit's height; the centres
+    and axes stay the caps'."""
     whole, *_ = ideal_cap(np.zeros(3), 0.2, 0.1, 0.0, 0.02, 0.012, n=4000, seed=1)
     rng = np.random.default_rng(2)
     elevation, azimuth = rng.uniform(1.0, np.pi / 2, 4000), rng.uniform(0, 2 * np.pi, 4000)
@@ -330,18 +334,19 @@ def test_rim_radius_is_the_dome_unless_it_extrapolates_past_the_quantile():
     caps = pose.Caps(np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]]),
                      np.stack([cap_rotation(0.2, 0.1), np.eye(3), np.eye(3)]),
                      np.array([[0.05, 0.05, 0.012], [0.05, 0.05, 0.018], [0.05, 0.05, 0.004]]))
-    measured = pose.with_rim_radii(caps, points, labels)
+    measured = pose.with_dome_sizes(caps, points, labels)
     crown_rim = 0.03 * np.cos(1.0 + (1 - pose.RIM_QUANTILE) * (np.pi / 2 - 1.0))
     np.testing.assert_allclose(measured.radii, [0.02, crown_rim, 0.015 * np.sqrt(pose.RIM_QUANTILE)], rtol=0.01)
-    np.testing.assert_array_equal(measured.scales[:, 2], caps.scales[:, 2])
+    np.testing.assert_allclose(measured.scales[0, 2], 0.012, rtol=1e-9)
+    np.testing.assert_array_equal(measured.scales[1:, 2], caps.scales[1:, 2])
     np.testing.assert_array_equal(measured.centers, caps.centers)
 
 
-def test_rim_radius_keeps_the_fit_where_a_cap_has_too_few_points():
+def test_the_size_keeps_the_fit_where_a_cap_has_too_few_points():
     caps = pose.Caps(np.zeros((2, 3)), np.stack([np.eye(3)] * 2), np.array([[0.02, 0.02, 0.013]] * 2))
     points = np.array([[0.01, 0.0, 0.0]] * 3 + [[0.015, 0.0, 0.0]] * pose.SURFACE_MIN_POINTS)
     labels = np.array([0] * 3 + [1] * pose.SURFACE_MIN_POINTS)
-    measured = pose.with_rim_radii(caps, points, labels)
+    measured = pose.with_dome_sizes(caps, points, labels)
     np.testing.assert_allclose(measured.radii, [0.02, 0.015])
 
 
@@ -364,9 +369,30 @@ def test_find_caps_reports_the_rim_radius_and_with_fit_the_ellipsoids():
     true_radii = np.sort([s for *_, s in caps])
     np.testing.assert_allclose(fitted.radii[order], true_radii, rtol=1e-6)
     np.testing.assert_allclose(measured.radii[order], true_radii, rtol=1e-6)
-    np.testing.assert_array_equal(measured.scales[:, 2], fitted.scales[:, 2])
+    np.testing.assert_allclose(measured.scales[:, 2], fitted.scales[:, 2], rtol=1e-6)
     # the points each stand for a voxel at their centre's place: 1.1 times as far out, a dome 1.1 times as wide
     _, on_points = find_caps(prediction, 0.0045, points=1.1 * points - 0.1 * prediction.centers)
     np.testing.assert_allclose(on_points.radii[order], 1.1 * true_radii, rtol=1e-6)
     with pytest.raises(ValueError, match="radius mode"):
         find_caps(prediction, 0.0045, radius="widest")
+
+
+def test_flat_caps_get_their_own_height_from_the_dome():
+    """Opened caps 0.3 times as high as wide lie outside the height ratios the pose fit allows
+    (``HEIGHT_RATIO_RANGE``), so its s_z overstates them; the dome fitted to their points gives back
+    their s and s_z."""
+    from perception.detect import VoxelPrediction, find_caps
+
+    assert 0.3 < pose.HEIGHT_RATIO_RANGE[0]
+    caps = [((0.0, 0.0, 0.01), 0.2, -0.1, 0.03), ((0.1, 0.05, 0.0), -0.15, 0.1, 0.035)]
+    parts = [ideal_cap(np.array(c), tx, ty, 0.0, s, 0.3 * s, n=4000, seed=i) for i, (c, tx, ty, s) in enumerate(caps)]
+    points = np.concatenate([p[0] for p in parts])
+    prediction = VoxelPrediction(points, np.ones(len(points)), np.concatenate([p[1] for p in parts]),
+                                 np.concatenate([p[2] for p in parts]), np.arange(len(points)))
+    _, fitted = find_caps(prediction, 0.0045, radius="fit")
+    _, measured = find_caps(prediction, 0.0045)
+    order = np.argsort(measured.radii)
+    true_radii = np.sort([s for *_, s in caps])
+    np.testing.assert_allclose(measured.radii[order], true_radii, rtol=1e-3)
+    np.testing.assert_allclose(measured.scales[order, 2], 0.3 * true_radii, rtol=1e-3)
+    assert (fitted.scales[:, 2] > 1.3 * 0.3 * fitted.radii).all()

@@ -32,8 +32,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="cap axis: the encoding's refined by the cap's surface (default), or the "
                         "encoding's alone, as in the paper")
     parser.add_argument("--radius", choices=["rim", "fit"], default="rim",
-                        help="cap radius: measured on the cap's own points (default), or the fitted "
-                        "ellipsoid's, as in the paper")
+                        help="cap radius and height: of the dome fitted to the cap's own points (default), or "
+                        "the pose fit's ellipsoid's, as in the paper")
     parser.add_argument("--spacing", type=parse_spacing,
                         help=f"the same beds at this point spacing in metres (default {SPACING_HELP}; "
                              "e.g. 0.0051 for 5.1 mm sets)")
