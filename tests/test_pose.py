@@ -350,21 +350,29 @@ def test_the_size_keeps_the_fit_where_a_cap_has_too_few_points():
     np.testing.assert_allclose(measured.radii, [0.02, 0.015])
 
 
-def test_find_caps_reports_the_rim_radius_and_with_fit_the_ellipsoids():
-    """Three ideal caps through the whole instance step: with ``radius="fit"`` the ellipsoid's s comes
-    back exactly, and by default the rim of the dome their points lie on, the same s; with the cloud's
-    points given, measured on them rather than on the voxel centroids."""
+def ideal_caps_found(caps, height_ratio):
+    """Ideal caps ((centre, theta_x, theta_y, s), s_z = ``height_ratio`` s) through the whole instance
+    step, each point its own voxel: the points, the prediction, and the caps found with
+    ``radius="fit"`` and by default."""
     from perception.detect import VoxelPrediction, find_caps
 
-    caps = [((0.0, 0.0, 0.01), 0.4, -0.3, 0.02), ((0.1, 0.05, 0.0), -0.6, 0.1, 0.012),
-            ((-0.08, 0.1, 0.02), 0.0, 0.7, 0.028)]
-    parts = [ideal_cap(np.array(c), tx, ty, 0.0, s, CAP_HEIGHT_RATIO * s, n=4000, seed=i)
+    parts = [ideal_cap(np.array(c), tx, ty, 0.0, s, height_ratio * s, n=4000, seed=i)
              for i, (c, tx, ty, s) in enumerate(caps)]
     points = np.concatenate([p[0] for p in parts])
     prediction = VoxelPrediction(points, np.ones(len(points)), np.concatenate([p[1] for p in parts]),
                                  np.concatenate([p[2] for p in parts]), np.arange(len(points)))
-    _, fitted = find_caps(prediction, 0.0045, radius="fit")
-    _, measured = find_caps(prediction, 0.0045)
+    return points, prediction, find_caps(prediction, 0.0045, radius="fit")[1], find_caps(prediction, 0.0045)[1]
+
+
+def test_find_caps_reports_the_rim_radius_and_with_fit_the_ellipsoids():
+    """Three ideal caps through the whole instance step: with ``radius="fit"`` the ellipsoid's s comes
+    back exactly, and by default the rim of the dome their points lie on, the same s; with the cloud's
+    points given, measured on them rather than on the voxel centroids."""
+    from perception.detect import find_caps
+
+    caps = [((0.0, 0.0, 0.01), 0.4, -0.3, 0.02), ((0.1, 0.05, 0.0), -0.6, 0.1, 0.012),
+            ((-0.08, 0.1, 0.02), 0.0, 0.7, 0.028)]
+    points, prediction, fitted, measured = ideal_caps_found(caps, CAP_HEIGHT_RATIO)
     order = np.argsort(fitted.radii)
     true_radii = np.sort([s for *_, s in caps])
     np.testing.assert_allclose(fitted.radii[order], true_radii, rtol=1e-6)
@@ -381,16 +389,9 @@ def test_flat_caps_get_their_own_height_from_the_dome():
     """Opened caps 0.3 times as high as wide lie outside the height ratios the pose fit allows
     (``HEIGHT_RATIO_RANGE``), so its s_z overstates them; the dome fitted to their points gives back
     their s and s_z."""
-    from perception.detect import VoxelPrediction, find_caps
-
     assert 0.3 < pose.HEIGHT_RATIO_RANGE[0]
     caps = [((0.0, 0.0, 0.01), 0.2, -0.1, 0.03), ((0.1, 0.05, 0.0), -0.15, 0.1, 0.035)]
-    parts = [ideal_cap(np.array(c), tx, ty, 0.0, s, 0.3 * s, n=4000, seed=i) for i, (c, tx, ty, s) in enumerate(caps)]
-    points = np.concatenate([p[0] for p in parts])
-    prediction = VoxelPrediction(points, np.ones(len(points)), np.concatenate([p[1] for p in parts]),
-                                 np.concatenate([p[2] for p in parts]), np.arange(len(points)))
-    _, fitted = find_caps(prediction, 0.0045, radius="fit")
-    _, measured = find_caps(prediction, 0.0045)
+    _, _, fitted, measured = ideal_caps_found(caps, 0.3)
     order = np.argsort(measured.radii)
     true_radii = np.sort([s for *_, s in caps])
     np.testing.assert_allclose(measured.radii[order], true_radii, rtol=1e-3)
