@@ -137,13 +137,14 @@ def point_spacing(points: np.ndarray, samples: int = 5000) -> float:
     return median_neighbour_distance(points, queries=samples) / NEIGHBOUR_PER_SPACING
 
 
-def reading_zoom(model: Network, points: np.ndarray) -> float:
+def reading_zoom(model: Network, points: np.ndarray, spacing: float | None = None) -> float:
     """The zoom a cloud (at most training density, ``at_training_density``) is read at: the model's,
     lowered for a cloud sparser than the model's training beds. The network learnt caps from beds with
     a point per 3 mm; on sparser ones a cap's voxels are a gappy shell, and reading the cloud smaller
-    closes it up (caps then look smaller, which costs less)."""
+    closes it up (caps then look smaller, which costs less). ``spacing``: the points' ``point_spacing``,
+    when measured already."""
     zoom = model.inference_zoom
-    spacing = point_spacing(points)
+    spacing = point_spacing(points) if spacing is None else spacing
     if not model.point_spacing or not np.isfinite(spacing):
         return zoom
     return zoom * min(1.0, (spacing / model.point_spacing) ** -SPARSE_ZOOM_EXPONENT)
@@ -172,12 +173,13 @@ class Reading:
         return int((self.output[1] > 0.5).sum())
 
 
-def densified_for_reading(model: Network, points: np.ndarray) -> np.ndarray:
+def densified_for_reading(model: Network, points: np.ndarray, spacing: float | None = None) -> np.ndarray:
     """The points (bed frame), followed by those that fill them in to the training beds' spacing when
-    they lie further apart than ``DENSIFY_SPACING`` (``perception.densify``); else the points as given."""
+    they lie further apart than ``DENSIFY_SPACING`` (``perception.densify``); else the points as given.
+    ``spacing``: the points' ``point_spacing``, when measured already."""
     from perception.densify import densified
 
-    spacing = point_spacing(points)
+    spacing = point_spacing(points) if spacing is None else spacing
     if not model.point_spacing or not spacing > DENSIFY_SPACING:
         return points
     return densified(points, spacing, model.point_spacing)
@@ -191,8 +193,9 @@ def reading_input(model: Network, points: np.ndarray, thin: bool = True,
     voxels, each read point's voxel and the voxels' zoomed centroids."""
     points = np.asarray(points, np.float64)
     kept = at_training_density(model, points) if thin else np.arange(len(points))
-    zoom = reading_zoom(model, points[kept]) if zoom is None else zoom
-    read = densified_for_reading(model, points[kept]) if thin else points[kept]
+    spacing = point_spacing(points[kept])
+    zoom = reading_zoom(model, points[kept], spacing) if zoom is None else zoom
+    read = densified_for_reading(model, points[kept], spacing) if thin else points[kept]
     reach, grid = float(np.abs(read).max()), COORD_MAX * model.config.voxel / zoom
     if not reach < grid:
         raise ValueError(f"the cloud reaches {reach:.3g} m from the bed origin, beyond the voxel grid's "
