@@ -4,7 +4,7 @@ Medians over scenes with 2 torch threads, for the shipped model (or --model). Th
 baseline is scikit-learn MeanShift without bin seeding (every point a seed), timed in the same run
 on the same inputs, and beside it MeanShift seeded by scikit-learn's bins instead of our peaks.
 Targets: end to end <= 400 ms for a 0.5 m x 0.5 m bed (about 20 k voxels),
-pose <= 5 ms for 45 caps. The pose stage includes the axis's surface fit; the encoding's least squares
+pose <= 5 ms for 45 caps. The pose stage includes the axis's surface fit and the caps' dome sizes; the encoding's least squares
 alone (the paper's pose fit) is timed beside it, outside the end to end. A single pose step of a few
 milliseconds moves by tens of percent with the machine's load, so the scene with most caps is also
 fitted again ``POSE_REPEATS`` times on the same inputs and the median printed.
@@ -30,7 +30,7 @@ from perception.detect import at_training_density, network_input, network_output
 
 from perception.weights import DEFAULT_WEIGHTS
 from perception.instances import ClusterConfig, cluster
-from perception.pose import fit_caps
+from perception.pose import fit_caps, with_dome_sizes
 from perception.synthetic.dataset import load_preset
 from perception.weights import load_weights
 from pipeline.process import reuse_freed_memory
@@ -65,8 +65,9 @@ def main() -> None:
     pose_inputs = []
     for index, scene in enumerate([scenes[0]] + scenes):
         t0 = time.perf_counter()
-        # as perception.detect.predict (but for mapping dropped points back to voxels): the network reads
-        # the zoomed cloud at the model's training density, clustering and pose work in metres
+        # as perception.detect.predict reads a val50 bed (at training density: neither thinned nor filled in,
+        # and dropped points not mapped back to voxels): the network reads the zoomed cloud, clustering and
+        # pose work in metres; the caps' sizes are measured on their points as find_caps measures them
         kept = at_training_density(model, scene.points)
         coords, point_to_voxel, zoomed_centroids = network_input(args.zoom * scene.points[kept], voxel)
         t1 = time.perf_counter()
@@ -74,7 +75,8 @@ def main() -> None:
         t2 = time.perf_counter()
         labels = cluster(centroids, centers, existence, voxel, ClusterConfig())
         t3 = time.perf_counter()
-        fit = fit_caps(centroids, centers, orientation, existence, labels)
+        fit = with_dome_sizes(fit_caps(centroids, centers, orientation, existence, labels), scene.points[kept],
+                              labels[point_to_voxel])
         t4 = time.perf_counter()
         if index == 0:
             continue
@@ -84,7 +86,8 @@ def main() -> None:
                            ("network", t2 - t1), ("instances", t3 - t2), ("pose", t4 - t3), ("total", t4 - t0),
                            ("encoding", t5 - t4)):
             rows[key].append(value)
-        pose_inputs.append((centroids, centers, orientation, existence, labels))
+        pose_inputs.append(((centroids, centers, orientation, existence, labels), scene.points[kept],
+                            labels[point_to_voxel]))
         if index <= args.baseline_scenes:
             candidates = centers[existence > 0.5]
             t6 = time.perf_counter()
@@ -116,7 +119,8 @@ def main() -> None:
     repeats = []
     for _ in range(POSE_REPEATS):
         t = time.perf_counter()
-        fit_caps(*pose_inputs[most])
+        inputs, points, point_labels = pose_inputs[most]
+        with_dome_sizes(fit_caps(*inputs), points, point_labels)
         repeats.append(time.perf_counter() - t)
     low, median, high = 1000 * np.percentile(repeats, [25, 50, 75])
     print(f"  pose for the scene with most caps ({rows['caps'][most]}): {1000 * rows['pose'][most]:.2f} ms in the "

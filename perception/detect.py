@@ -36,6 +36,8 @@ class VoxelPrediction:
     """Predicted cap centre of each voxel: centroid + residual."""
     orientation: np.ndarray
     point_to_voxel: np.ndarray
+    filled_in: int = 0
+    """How many points a sparse cloud was filled in with before it was read (``densified_for_reading``)."""
 
 
 @dataclass(frozen=True)
@@ -119,11 +121,12 @@ OPERATING_DIAMETER = 0.080
 NEIGHBOUR_PER_SPACING = 0.645
 """Median distance from a point of a synthetic bed to its nearest neighbour, over the bed's point
 spacing: how a cloud's measured neighbour distance is read as a generator's spacing."""
-DENSIFY_SPACING = 0.006
-"""Metres: a cloud whose points lie as far apart as a bed sampled this sparsely (``point_spacing``) is
-filled in to the training beds' spacing before it is read (``perception.densify``), and still read at
-its own spacing's zoom (``reading_zoom``): the filled-in caps lack the steep sides no triangle spans,
-and read smaller they are found as the sparse zoom finds caps."""
+DENSIFY_RATIOS = (2.0, 4.0)
+"""A cloud whose points lie from 2 to 4 times as far apart as the training beds' (``point_spacing``; 6-12 mm
+for the shipped model) is filled in to their spacing before it is read (``perception.densify``), and still
+read at its own spacing's zoom (``reading_zoom``): the filled-in caps lack the steep sides no triangle
+spans, and read smaller they are found as the sparse zoom finds caps. A sparser cloud shows too little
+of a cap to fill in, and would grow by the square of the ratio."""
 SPARSE_ZOOM_EXPONENT = 0.56
 """How much lower a sparse cloud is read: zoom x (spacing ratio)^-0.56, so a bed sampled every 5 mm is
 read at 0.9 instead of 1.2, where its AP@50 peaks (docs/RESULTS.md, "How the fit's constants were chosen")."""
@@ -161,8 +164,8 @@ class Reading:
     read: np.ndarray
     """The points read: the kept ones, then those a sparse cloud is filled in with (``densified_for_reading``)."""
     coords: np.ndarray
-    kept_to_voxel: np.ndarray
-    """Each read point's voxel."""
+    read_to_voxel: np.ndarray
+    """Each read point's voxel: the kept points' first."""
     zoomed_centroids: np.ndarray
     output: tuple
     """``network_output``'s centroids, existence, centres and orientation values."""
@@ -175,12 +178,15 @@ class Reading:
 
 def densified_for_reading(model: Network, points: np.ndarray, spacing: float | None = None) -> np.ndarray:
     """The points (bed frame), followed by those that fill them in to the training beds' spacing when
-    they lie further apart than ``DENSIFY_SPACING`` (``perception.densify``); else the points as given.
+    they lie ``DENSIFY_RATIOS`` times as far apart (``perception.densify``); else the points as given.
     ``spacing``: the points' ``point_spacing``, when measured already."""
     from perception.densify import densified
 
+    if not model.point_spacing:
+        return points
     spacing = point_spacing(points) if spacing is None else spacing
-    if not model.point_spacing or not spacing > DENSIFY_SPACING:
+    low, high = DENSIFY_RATIOS
+    if not low * model.point_spacing < spacing <= high * model.point_spacing:
         return points
     return densified(points, spacing, model.point_spacing)
 
@@ -193,13 +199,13 @@ def reading_input(model: Network, points: np.ndarray, thin: bool = True,
     voxels, each read point's voxel and the voxels' zoomed centroids."""
     points = np.asarray(points, np.float64)
     kept = at_training_density(model, points) if thin else np.arange(len(points))
-    spacing = point_spacing(points[kept])
+    spacing = point_spacing(points[kept]) if thin or zoom is None else None
     zoom = reading_zoom(model, points[kept], spacing) if zoom is None else zoom
-    read = densified_for_reading(model, points[kept], spacing) if thin else points[kept]
-    reach, grid = float(np.abs(read).max()), COORD_MAX * model.config.voxel / zoom
-    if not reach < grid:
+    reach, grid = float(np.abs(points[kept]).max()), COORD_MAX * model.config.voxel / zoom
+    if not reach < grid:  # points filled in lie inside the kept ones' hull
         raise ValueError(f"the cloud reaches {reach:.3g} m from the bed origin, beyond the voxel grid's "
                          f"{grid:.0f} m: bring it near the origin")
+    read = densified_for_reading(model, points[kept], spacing) if thin else points[kept]
     return kept, zoom, read, *network_input(zoom * read, model.config.voxel)
 
 
@@ -239,15 +245,15 @@ def predict(model: Network, points: np.ndarray, thin: bool = True,
     kept, zoom = first.kept, first.zoom
     centroids, existence, centers, orientation = first.output
     if readings > 1:
-        existence, centers, orientation = _averaged_readings(model, first.read, zoom, readings, first.kept_to_voxel,
+        existence, centers, orientation = _averaged_readings(model, first.read, zoom, readings, first.read_to_voxel,
                                                              (existence, centers, orientation))
-    kept_to_voxel = first.kept_to_voxel[:len(kept)]  # the points filled in come after the kept ones
+    kept_to_voxel = first.read_to_voxel[:len(kept)]  # the points filled in come after the kept ones
     if len(kept) == len(points):
         point_to_voxel = kept_to_voxel
     else:
         point_to_voxel = _nearest_voxel(zoom * points, model.config.voxel, first.coords, first.zoomed_centroids)
         point_to_voxel[kept] = kept_to_voxel
-    return VoxelPrediction(centroids, existence, centers, orientation, point_to_voxel)
+    return VoxelPrediction(centroids, existence, centers, orientation, point_to_voxel, len(first.read) - len(kept))
 
 
 def network_output(model: Network, coords: np.ndarray, zoomed_centroids: np.ndarray, zoom: float):
@@ -428,6 +434,6 @@ def transform_result(result: SceneResult, T_frame_bed: np.ndarray, frame: str) -
     """The same caps expressed in another frame (rotations and centres moved; sizes unchanged)."""
     voxels = VoxelPrediction(transform_points(T_frame_bed, result.voxels.centroids), result.voxels.existence,
                              transform_points(T_frame_bed, result.voxels.centers), result.voxels.orientation,
-                             result.voxels.point_to_voxel)
+                             result.voxels.point_to_voxel, result.voxels.filled_in)
     return SceneResult(result.caps.moved(T_frame_bed), result.point_labels, result.point_existence, voxels, frame, result.timings_ms,
                        result.surface_noise)

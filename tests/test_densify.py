@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from perception.densify import MAX_EDGE_SPACINGS, densified
-from perception.detect import DENSIFY_SPACING, densified_for_reading, predict, reading_input
+from perception.detect import DENSIFY_RATIOS, densified_for_reading, point_spacing, predict, reading_input
 from helpers import tiny_network_config
 from perception.model import MushroomNet
 
@@ -60,14 +60,18 @@ def test_clouds_with_no_surface_come_back_as_given(points):
 
 
 def test_only_clouds_sparser_than_the_threshold_are_filled_in_and_only_their_own_points_labelled():
-    """A cloud at 4 mm is read as it is; one at 8 mm is read with the points filled in after its own, at
-    the zoom of its own spacing, and every prediction maps the cloud's own points only."""
+    """A cloud at 3 mm, or too sparse to fill in, is read as it is; one at 8 mm is read with the points
+    filled in after its own, at the zoom of its own spacing, and every prediction maps the cloud's own
+    points only, each to the voxel it lies in."""
     torch.manual_seed(0)
     model = MushroomNet(tiny_network_config(), point_spacing=TARGET).eval()
-    near = sparse_grid(0.004)
-    assert densified_for_reading(model, near) is near
+    low, high = DENSIFY_RATIOS
+    for spacing in (0.003, 0.02):
+        cloud = sparse_grid(spacing, half=0.2)
+        assert not low * TARGET < point_spacing(cloud) <= high * TARGET
+        assert densified_for_reading(model, cloud) is cloud
     far = sparse_grid(0.008)
-    assert 0.008 > DENSIFY_SPACING
+    assert low * TARGET < point_spacing(far) <= high * TARGET
     kept, zoom, read, *_ = reading_input(model, far)
     assert len(kept) == len(far) and len(read) > 4 * len(far) and np.array_equal(read[:len(far)], far)
     _, zoom_unfilled, *_ = reading_input(model, far, thin=False)
@@ -75,7 +79,19 @@ def test_only_clouds_sparser_than_the_threshold_are_filled_in_and_only_their_own
     prediction = predict(model, far, readings=2)
     unfilled = predict(model, far, thin=False, readings=2)
     assert len(prediction.centroids) > len(unfilled.centroids)
-    # each of the cloud's points maps to the voxel it lies in
+    assert prediction.filled_in == len(read) - len(far) and unfilled.filled_in == 0
     voxel = model.config.voxel / zoom
-    own = np.floor(far / voxel)
-    assert np.array_equal(np.floor(prediction.centroids[prediction.point_to_voxel] / voxel), own)
+    assert np.array_equal(np.floor(prediction.centroids[prediction.point_to_voxel] / voxel), np.floor(far / voxel))
+
+
+def test_a_cloud_thinned_and_then_filled_in_maps_its_dropped_points_to_their_kept_twins_voxels():
+    """Each point of an 8 mm cloud given five times over: the copies are thinned away, the kept points
+    filled in, and every copy takes the voxel of the point it copies."""
+    torch.manual_seed(0)
+    model = MushroomNet(tiny_network_config(), point_spacing=TARGET).eval()
+    far = sparse_grid(0.008)
+    copies = np.concatenate([far] * 5)
+    prediction = predict(model, copies)
+    assert prediction.filled_in > 0 and len(prediction.point_to_voxel) == len(copies)
+    np.testing.assert_array_equal(prediction.point_to_voxel.reshape(5, len(far)),
+                                  np.tile(prediction.point_to_voxel[:len(far)], (5, 1)))

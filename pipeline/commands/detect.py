@@ -200,13 +200,12 @@ def _detect_session(args: argparse.Namespace) -> int:
 
 def _warn_outside_range(model, bed_points, result, cloud: str) -> None:
     """Say so on stderr when a cloud or its caps lie outside the range the model holds to."""
-    from perception.detect import (DENSIFY_SPACING, OPERATING_DIAMETER, OPERATING_SPACING, at_training_density,
-                                   point_spacing)
+    from perception.detect import OPERATING_DIAMETER, OPERATING_SPACING, at_training_density, point_spacing
 
     spacing = point_spacing(bed_points[at_training_density(model, bed_points)])
     if spacing > OPERATING_SPACING:
         filled = (f"; its surface was filled in to {1000 * model.point_spacing:g} mm before reading"
-                  if model.point_spacing and spacing > DENSIFY_SPACING else "")
+                  if result.voxels.filled_in else "")
         print(f"warning: the points of {cloud} lie as far apart as a bed sampled every {1000 * spacing:.1f} mm; the "
               f"model holds to {1000 * OPERATING_SPACING:g} mm: caps under 30 mm across are found less reliably"
               f"{filled}", file=sys.stderr)
