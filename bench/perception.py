@@ -4,10 +4,10 @@ Medians over scenes with 2 torch threads, for the shipped model (or --model). Th
 baseline is scikit-learn MeanShift without bin seeding (every point a seed), timed in the same run
 on the same inputs, and beside it MeanShift seeded by scikit-learn's bins instead of our peaks.
 Targets: end to end <= 400 ms for a 0.5 m x 0.5 m bed (about 20 k voxels),
-pose <= 5 ms for 45 caps. The pose stage includes the axis's surface fit and the caps' dome sizes; the encoding's least squares
-alone (the paper's pose fit) is timed beside it, outside the end to end. A single pose step of a few
-milliseconds moves by tens of percent with the machine's load, so the scene with most caps is also
-fitted again ``POSE_REPEATS`` times on the same inputs and the median printed.
+pose <= 5 ms for 45 caps. The pose stage includes the axis's surface fit and the caps' dome sizes; the
+encoding's least squares alone (the paper's pose fit) is timed beside it, outside the end to end. A
+single pose step of a few milliseconds moves by tens of percent with the machine's load, so the scene
+with most caps is also fitted again ``POSE_REPEATS`` times on the same inputs and the median printed.
 Usage: python bench/perception.py [--model PATH] [--scenes N] [--baseline-scenes N] [--visibility hpr|camera]
        [--zoom Z]
 """

@@ -8,10 +8,10 @@ longer depends on e, and b / |lambda| = u . e is the centre's error along the ax
 Without the intercept, e biases the axis towards the vertical.
 
 With the axis known, the ellipsoid equation gives the size (and ``with_dome_sizes`` then measures the
-radius and height on the cap's own points: the dome fitted to them, ``fit_domes``). The paper fixes s_z = 2 s / 3 and fits
-one s (``height="fixed"``); by default we fit s and s_z together, (x^2 + y^2) / s^2 + z^2 / s_z^2 = 1
-being linear in (1 / s^2, 1 / s_z^2), and keep s_z / s within the range real caps span, because caps
-are not all of one shape.
+radius and height on the cap's own points: the dome fitted to them, ``fit_domes``). The paper fixes
+s_z = 2 s / 3 and fits one s (``height="fixed"``); by default we fit s and s_z together, (x^2 + y^2) /
+s^2 + z^2 / s_z^2 = 1 being linear in (1 / s^2, 1 / s_z^2), and keep s_z / s within the range real caps
+span, because caps are not all of one shape.
 
 By default (``axis="surface"``) the encoding's axis is then refined by the cap's own surface: an
 ellipsoid fitted to the cluster's points, started at the encoding's pose. The encoding values are
