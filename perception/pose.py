@@ -61,10 +61,6 @@ RIM_DOME_RANGE = (0.8, 1.25)
 """The dome fitted to a cap's own points (``fit_domes``) gives its radius and height when its rim lies
 within these factors of ``RIM_QUANTILE``'s distance; beyond them the fit extrapolates a crown or a stray
 piece of soil, and the quantile and the pose fit's height are kept."""
-DOME_HEIGHT_RANGE = (0.15, 1.2)
-"""...and when its height lies within these fractions of its radius: the flattest opened caps stand 0.2
-of theirs, the template's tallest 1.0; points scattered about one level (a noisy disc) fit a dome as
-high as their noise."""
 SURFACE_NOISE_REFERENCE = 3e-4
 """Metres. Up to this median distance of the clusters' points from their fitted surfaces the encoding
 keeps ``SURFACE_ENCODING_WEIGHT`` (``encoding_weight``): above every synthetic camera's noise, below a
@@ -201,16 +197,16 @@ def fit_domes(points: np.ndarray, labels: np.ndarray, caps: Caps, min_points: in
 
 def with_dome_sizes(caps: Caps, points: np.ndarray, labels: np.ndarray) -> Caps:
     """The caps with their radius s and height s_z measured on their own points: the dome they fit
-    (``fit_domes``), or where that dome's rim leaves ``RIM_DOME_RANGE`` of ``RIM_QUANTILE``'s distance
-    or its height ``DOME_HEIGHT_RANGE`` of its radius, that distance and the pose fit's height; the
-    centre and the axis stay the pose fit's. A cap with fewer than ``SURFACE_MIN_POINTS`` keeps its fit."""
+    (``fit_domes``), or where that dome's rim leaves ``RIM_DOME_RANGE`` of ``RIM_QUANTILE``'s distance,
+    that distance and the pose fit's height; the centre and the axis stay the pose fit's. A cap with
+    fewer than ``SURFACE_MIN_POINTS`` keeps its fit. The height is what the points show however flat:
+    points scattered about one level fit a dome as low as their scatter, and that is where their top
+    is."""
     rim = rim_radii(points, labels, caps, min_points=SURFACE_MIN_POINTS)
     radii, heights = fit_domes(points, labels, caps, min_points=SURFACE_MIN_POINTS)
     low, high = RIM_DOME_RANGE
-    flattest, tallest = DOME_HEIGHT_RANGE
     with np.errstate(invalid="ignore"):
-        trusted = ((radii >= low * rim) & (radii <= high * rim)
-                   & (heights >= flattest * radii) & (heights <= tallest * radii))
+        trusted = (radii >= low * rim) & (radii <= high * rim)
     radius = np.where(trusted, radii, np.where(np.isfinite(rim), rim, caps.radii))
     height = np.where(trusted, heights, caps.scales[:, 2])
     return replace(caps, scales=np.column_stack([radius, radius, height]))

@@ -342,22 +342,6 @@ def test_the_size_is_the_dome_unless_it_extrapolates_past_the_quantile():
     np.testing.assert_array_equal(measured.centers, caps.centers)
 
 
-def test_a_disc_of_points_scattered_about_one_level_keeps_the_quantile_and_the_fits_height():
-    """Points even over a disc of radius R, scattered 0.2 mm about the cap centre's level, fit a dome
-    whose rim lies near R but whose height is the noise's (under ``DOME_HEIGHT_RANGE``): the radius is
-    the quantile's R sqrt(0.9) and the height the pose fit's."""
-    rng = np.random.default_rng(4)
-    radius, angle = 0.015 * np.sqrt(rng.uniform(0, 1, 4000)), rng.uniform(0, 2 * np.pi, 4000)
-    disc = np.column_stack([radius * np.cos(angle), radius * np.sin(angle), rng.normal(0, 2e-4, 4000)])
-    caps = pose.Caps(np.zeros((1, 3)), np.eye(3)[None], np.array([[0.02, 0.02, 0.01]]))
-    labels = np.zeros(4000, np.int64)
-    radii, heights = pose.fit_domes(disc, labels, caps)
-    assert 0.8 * 0.015 < radii[0] < 1.25 * 0.015 and heights[0] < pose.DOME_HEIGHT_RANGE[0] * radii[0]
-    measured = pose.with_dome_sizes(caps, disc, labels)
-    np.testing.assert_allclose(measured.radii, [0.015 * np.sqrt(pose.RIM_QUANTILE)], rtol=0.01)
-    np.testing.assert_array_equal(measured.scales[:, 2], [0.01])
-
-
 def test_the_size_keeps_the_fit_where_a_cap_has_too_few_points():
     caps = pose.Caps(np.zeros((2, 3)), np.stack([np.eye(3)] * 2), np.array([[0.02, 0.02, 0.013]] * 2))
     points = np.array([[0.01, 0.0, 0.0]] * 3 + [[0.015, 0.0, 0.0]] * pose.SURFACE_MIN_POINTS)
