@@ -27,8 +27,7 @@ def densified(points: np.ndarray, spacing: float, target: float, seed: int = 0) 
     """The points (N, 3; bed frame, z up) followed by points drawn on their height-field triangulation,
     one in each ``target`` cell that no given point occupies; ``spacing`` is the cloud's point spacing
     (metres), which sets the longest edge kept. Seeded: a cloud always gets the same points."""
-    from scipy.spatial import Delaunay
-    from scipy.spatial import QhullError
+    from scipy.spatial import Delaunay, QhullError
 
     points = np.asarray(points, np.float64)
     try:
